@@ -1,0 +1,54 @@
+"""Exceptions an operator can act on.
+
+Every error felis raises on purpose derives from :class:`FelisError`. The CLI prints such an
+error as one line (``error: <message>``) and exits non-zero; ``--debug`` shows the traceback.
+Messages name the thing that is wrong (file, key, joint, servo) and, where there is one, the fix.
+"""
+
+from __future__ import annotations
+
+
+class FelisError(Exception):
+    """Base class: an expected failure with a message meant for the operator."""
+
+
+class DescriptionError(FelisError):
+    """A robot description (``felis/robots/*.toml``) is malformed or impossible.
+
+    The message starts with ``<file>: <key>:`` so the operator can find the line to fix.
+    """
+
+    def __init__(self, source: str, key: str, problem: str):
+        self.source, self.key, self.problem = source, key, problem
+        super().__init__(f"{source}: {key}: {problem}")
+
+
+class UnknownRobotError(FelisError):
+    """A robot name that has no description."""
+
+
+class ParameterError(FelisError):
+    """A command or scenario parameter is out of its valid range (e.g. a negative drop height)."""
+
+
+class LifecycleError(FelisError):
+    """A `Robot` method was called in the wrong lifecycle state (e.g. ``write`` before ``arm``)."""
+
+
+class CommError(FelisError):
+    """Reading or writing the robot failed (lost reply, corrupt packet, vanished servo or port).
+
+    The control loop tolerates a few of these in a row; past its tolerance the watchdog disarms.
+    """
+
+
+class SafetyTrip(FelisError):
+    """The safety layer stopped the run (watchdog: read failures or overruns past their limits)."""
+
+
+class SimulationError(FelisError):
+    """The physics became invalid (NaN or diverging state); the episode cannot continue."""
+
+
+class LogError(FelisError):
+    """A run log cannot be written or read (missing file, not an MCAP file, wrong schema)."""

@@ -1,0 +1,252 @@
+"""The hardware abstraction layer: `State`, `Command`, the `Robot` protocol and its lifecycle.
+
+Everything above ``felis.drivers`` sees robots only through these types, in SI units and radians,
+with arrays in the joint order of the robot's `RobotSpec`. A controller is a function of `State`
+(and time) returning a `Command`; it runs unchanged on a simulated and on a real robot.
+
+Lifecycle::
+
+    DISCONNECTED --connect()--> CONNECTED (read-only) --arm()--> ARMED --disarm()--> CONNECTED
+          ^                          |                              |
+          +--------close()-----------+------------close()-----------+     any failure -> ERROR
+
+``arm()`` turns torque on with the goal set to the present position first (no jump at start-up).
+Torque goes off on ``disarm()``, on ``close()`` and on any exception escaping a ``with robot:`` block.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from felis.errors import LifecycleError
+from felis.spec import RobotSpec
+
+
+@dataclass(frozen=True)
+class Imu:
+    """IMU reading in the world-aligned convention of MuJoCo sensors.
+
+    quat: orientation of the IMU frame in the world, (w, x, y, z); gyro: body rates (rad/s) in the
+    IMU frame; accel: specific force (m/s²) in the IMU frame (reads +9.81 on z when level and still).
+    """
+
+    quat: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Per-joint hardware error bits (Dynamixel Hardware Error Status) and communication errors."""
+
+    hardware: np.ndarray  # int per joint, 0 = healthy
+    comm_errors: int = 0  # failed transactions since connect
+    stale: np.ndarray | None = None  # bool per joint: value not refreshed this tick
+
+    @staticmethod
+    def none(n: int) -> Faults:
+        return Faults(hardware=np.zeros(n, dtype=np.int32))
+
+    @property
+    def any(self) -> bool:
+        return bool(self.hardware.any()) or (self.stale is not None and bool(self.stale.any()))
+
+
+@dataclass(frozen=True)
+class State:
+    """What the robot reports at one tick.
+
+    t: time (s) since connect; q: joint positions (rad; m for prismatic); dq: velocities;
+    effort: joint torques (N·m) estimated from servo current, None where not reported;
+    imu / contacts (bool per foot in `RobotSpec.sensors.contacts` order) / height (m, waist above
+    ground): None when the robot has no such sensor or the backend cannot know it.
+    """
+
+    t: float
+    q: np.ndarray
+    dq: np.ndarray
+    effort: np.ndarray | None = None
+    imu: Imu | None = None
+    contacts: np.ndarray | None = None
+    height: float | None = None
+    faults: Faults | None = None
+
+
+@dataclass(frozen=True)
+class Command:
+    """What a controller asks for.
+
+    q: position targets (rad; m for prismatic); dq_max: optional per-joint speed limits (rad/s)
+    applied by the backend (Dynamixel Profile Velocity; rate-limited goal in simulation);
+    torque: optional bool mask, False = torque off for that joint (None = all on).
+    """
+
+    q: np.ndarray
+    dq_max: np.ndarray | None = None
+    torque: np.ndarray | None = None
+
+    def replace(self, **changes) -> Command:
+        values = {"q": self.q, "dq_max": self.dq_max, "torque": self.torque}
+        values.update(changes)
+        return Command(**values)
+
+
+class Lifecycle(enum.Enum):
+    DISCONNECTED = "disconnected"
+    CONNECTED = "connected"
+    ARMED = "armed"
+    ERROR = "error"
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """A robot the control loop can drive: simulation or hardware."""
+
+    spec: RobotSpec
+    realtime: bool  # True: advance() waits for wall-clock time (hardware)
+
+    @property
+    def lifecycle(self) -> Lifecycle: ...
+
+    def connect(self) -> None: ...
+
+    def arm(self) -> None: ...
+
+    def disarm(self) -> None: ...
+
+    def read(self) -> State: ...
+
+    def write(self, command: Command) -> Command: ...
+
+    def advance(self, dt: float) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class RobotBase:
+    """Shared lifecycle bookkeeping for backends.
+
+    Subclasses implement ``_connect``, ``_arm``, ``_disarm``, ``_read``, ``_write``, ``_advance``,
+    ``_close``; this class checks the state machine, turns torque off on close and on exceptions
+    in a ``with`` block, and moves to ERROR when a backend call fails.
+    """
+
+    realtime = False
+
+    def __init__(self, spec: RobotSpec):
+        self.spec = spec
+        self._life = Lifecycle.DISCONNECTED
+
+    @property
+    def lifecycle(self) -> Lifecycle:
+        return self._life
+
+    def _require(self, *allowed: Lifecycle, action: str) -> None:
+        if self._life not in allowed:
+            want = " or ".join(a.value for a in allowed)
+            raise LifecycleError(f"{self.spec.name}: cannot {action} while {self._life.value} (needs {want})")
+
+    def _guard(self, fn, *args):
+        try:
+            return fn(*args)
+        except Exception:
+            self._life = Lifecycle.ERROR
+            self._safe_disarm()
+            raise
+
+    def _safe_disarm(self) -> None:
+        try:
+            self._disarm()
+        except Exception:  # torque-off is best effort once something already failed
+            pass
+
+    def connect(self) -> None:
+        self._require(Lifecycle.DISCONNECTED, action="connect")
+        self._guard(self._connect)
+        self._life = Lifecycle.CONNECTED
+
+    def arm(self) -> None:
+        self._require(Lifecycle.CONNECTED, action="arm")
+        self._guard(self._arm)
+        self._life = Lifecycle.ARMED
+
+    def disarm(self) -> None:
+        if self._life in (Lifecycle.ARMED, Lifecycle.ERROR):
+            self._disarm()
+            if self._life is Lifecycle.ARMED:
+                self._life = Lifecycle.CONNECTED
+
+    def read(self) -> State:
+        self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="read")
+        return self._read()
+
+    def write(self, command: Command) -> Command:
+        self._require(Lifecycle.ARMED, action="write")
+        q = np.asarray(command.q, dtype=float)
+        if q.shape != (self.spec.n,):
+            raise ValueError(f"{self.spec.name}: command has {q.size} positions, robot has {self.spec.n} joints")
+        return self._guard(self._write, command.replace(q=q))
+
+    def advance(self, dt: float) -> None:
+        self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="advance")
+        self._guard(self._advance, dt)
+
+    def close(self) -> None:
+        if self._life is Lifecycle.DISCONNECTED:
+            return
+        try:
+            self._safe_disarm()
+        finally:
+            self._close()
+            self._life = Lifecycle.DISCONNECTED
+
+    def __enter__(self):
+        if self._life is Lifecycle.DISCONNECTED:
+            self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # backend hooks -------------------------------------------------------------------------
+    def _connect(self) -> None:
+        raise NotImplementedError
+
+    def _arm(self) -> None:
+        raise NotImplementedError
+
+    def _disarm(self) -> None:
+        raise NotImplementedError
+
+    def _read(self) -> State:
+        raise NotImplementedError
+
+    def _write(self, command: Command) -> Command:
+        raise NotImplementedError
+
+    def _advance(self, dt: float) -> None:
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        pass
+
+
+
+
+@runtime_checkable
+class Controller(Protocol):
+    """A controller: bound to a robot by ``reset``, then called once per tick.
+
+    ``reset(spec, state)`` is called by the loop before the first tick with the robot's description
+    and first state, so one controller object can run on any robot (and be re-used across runs).
+    ``__call__(state) -> Command`` must be a pure function of its inputs and its own state; it never
+    touches a backend.
+    """
+
+    def reset(self, spec: RobotSpec, state: State) -> None: ...
+
+    def __call__(self, state: State) -> Command: ...
