@@ -1,0 +1,199 @@
+"""The fixed-rate control loop: read, compute, safety, write, monitors, log, advance.
+
+``run_loop`` drives any `Robot` with any `Controller` at ``rate_hz``::
+
+    for each tick k (t_k = t_0 + k·dt):
+        state   = robot.read()              # CommError: hold the last command; watchdog counts
+        command = controller(state)
+        command = safety.filter(command)    # non-finite → hold, soft limits, max step
+        sent    = robot.write(command)      # what the backend actually sent (after its clamping)
+        monitors(state, sent); log
+        robot.advance(dt)                   # simulation: step physics; hardware: returns
+        clock == "wall": sleep until t_k+1; a tick that ends after its deadline is an overrun
+
+Clocks: ``"sim"`` runs as fast as the backend steps (simulated time only); ``"wall"`` paces ticks
+to real time (needed for hardware, optional for simulation, e.g. servo-in-the-loop or a viewer).
+The watchdog (see `felis.safety`) disarms the robot past its tolerances; any exception from the
+controller, a monitor or the backend disarms it too before propagating. Torque is left off at
+the end of a run unless ``keep_armed`` is set.
+
+The report gives per-tick compute time (read → log, excluding physics and sleep): mean, p99, max,
+and overruns (ticks whose total time exceeded the period).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import numpy as np
+
+from felis.errors import CommError, ParameterError
+from felis.hal import Command, Controller, Lifecycle, Robot, State
+from felis.safety import SafetyConfig, SafetyLayer, Watchdog
+
+
+class Monitor(Protocol):
+    """Observes each tick (state read, command sent); must not command the robot."""
+
+    def __call__(self, state: State, command: Command) -> None: ...
+
+
+class RunLogLike(Protocol):
+    def state(self, state: State) -> None: ...
+    def command(self, t: float, command: Command) -> None: ...
+    def event(self, t: float, kind: str, **detail) -> None: ...
+
+
+@dataclass
+class Timing:
+    mean_ms: float
+    p99_ms: float
+    max_ms: float
+    overruns: int
+    period_ms: float
+
+    @staticmethod
+    def from_samples(compute_s: np.ndarray, overruns: int, dt: float) -> Timing:
+        if compute_s.size == 0:
+            return Timing(0.0, 0.0, 0.0, overruns, dt * 1e3)
+        ms = compute_s * 1e3
+        return Timing(float(ms.mean()), float(np.percentile(ms, 99)), float(ms.max()), overruns, dt * 1e3)
+
+
+@dataclass
+class LoopReport:
+    """What a run did; `ok` is False when the watchdog stopped it."""
+
+    robot: str
+    controller: str
+    clock: str
+    rate_hz: float
+    ticks: int
+    sim_time_s: float
+    wall_time_s: float
+    stopped: str  # "duration", "until", "watchdog: …", "interrupted"
+    timing: Timing
+    safety: dict[str, int]
+    read_failures: int
+    final_state: State | None = field(default=None, repr=False)
+
+    @property
+    def ok(self) -> bool:
+        return not self.stopped.startswith("watchdog")
+
+    def as_dict(self) -> dict:
+        return {
+            "robot": self.robot, "controller": self.controller, "clock": self.clock,
+            "rate_hz": self.rate_hz, "ticks": self.ticks, "sim_time_s": round(self.sim_time_s, 6),
+            "wall_time_s": round(self.wall_time_s, 4), "stopped": self.stopped, "ok": self.ok,
+            "timing": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.timing.__dict__.items()},
+            "safety": self.safety, "read_failures": self.read_failures,
+        }
+
+
+def run_loop(
+    robot: Robot,
+    controller: Controller,
+    *,
+    duration: float,
+    rate_hz: float | None = None,
+    clock: Literal["sim", "wall"] = "sim",
+    safety: SafetyConfig | None = None,
+    log: RunLogLike | None = None,
+    monitors: Iterable[Monitor] = (),
+    until: Callable[[State], bool] | None = None,
+    keep_armed: bool = False,
+) -> LoopReport:
+    """Run ``controller`` on ``robot`` for ``duration`` seconds at ``rate_hz`` (default: the spec's).
+
+    The robot must be connected; it is armed here if it is not already.
+    """
+    rate = float(rate_hz if rate_hz is not None else robot.spec.rate_hz)
+    if not (np.isfinite(duration) and duration > 0):
+        raise ParameterError(f"duration must be a positive number of seconds, got {duration}")
+    if not (np.isfinite(rate) and 1.0 <= rate <= 2000.0):
+        raise ParameterError(f"rate must be within 1…2000 Hz, got {rate}")
+    if clock not in ("sim", "wall"):
+        raise ParameterError(f"clock must be 'sim' or 'wall', got {clock!r}")
+    if robot.realtime and clock != "wall":
+        raise ParameterError(f"{robot.spec.name} is real hardware: it needs clock='wall'")
+    cfg = safety or SafetyConfig()
+    dt = 1.0 / rate
+    n_ticks = int(round(duration * rate))
+    monitors = list(monitors)
+    layer = SafetyLayer(robot.spec, dt, cfg)
+    dog = Watchdog(cfg.read_fail_tolerance, cfg.overrun_tolerance)
+    compute = np.zeros(n_ticks)
+    name = getattr(controller, "name", type(controller).__name__)
+
+    state = robot.read()
+    if robot.lifecycle is not Lifecycle.ARMED:
+        robot.arm()
+        state = robot.read()
+    controller.reset(robot.spec, state)
+    layer.reset(state.q)
+    for m in monitors:
+        if hasattr(m, "reset"):
+            m.reset(robot.spec, state)
+    wall0 = time.perf_counter()
+    deadline = wall0
+    stopped = "duration"
+    ticks = 0
+    try:
+        for k in range(n_ticks):
+            t0 = time.perf_counter()
+            try:
+                state = robot.read()
+                dog.read_ok()
+                command = layer.filter(controller(state))
+            except CommError as e:
+                if log is not None:
+                    log.event(state.t, "read_failed", error=str(e))
+                if dog.read_failed(e):
+                    stopped = f"watchdog: {dog.tripped}"
+                    break
+                command = layer.last  # hold
+            sent = robot.write(command)
+            layer.sent(sent)
+            for m in monitors:
+                m(state, sent)
+            if log is not None:
+                log.state(state)
+                log.command(state.t, sent)
+                for kind, detail in layer.events:
+                    log.event(state.t, kind, **detail)
+            compute[k] = time.perf_counter() - t0
+            ticks = k + 1
+            if until is not None and until(state):
+                stopped = "until"
+                break
+            robot.advance(dt)
+            now = time.perf_counter()
+            if clock == "wall":
+                deadline += dt
+                overrun = now > deadline
+                if overrun:
+                    deadline = now  # re-anchor: no burst of catch-up ticks after a stall
+                else:
+                    time.sleep(deadline - now)
+            else:
+                overrun = now - t0 > dt
+            if dog.tick(overrun, enforce=clock == "wall"):
+                stopped = f"watchdog: {dog.tripped}"
+                break
+    except KeyboardInterrupt:
+        stopped = "interrupted"
+    finally:
+        if stopped.startswith("watchdog") or not keep_armed or stopped == "interrupted":
+            robot.disarm()
+    if stopped.startswith("watchdog") and log is not None:
+        log.event(state.t, "watchdog", reason=dog.tripped)
+    return LoopReport(
+        robot=robot.spec.name, controller=name, clock=clock, rate_hz=rate, ticks=ticks,
+        sim_time_s=ticks * dt, wall_time_s=time.perf_counter() - wall0, stopped=stopped,
+        timing=Timing.from_samples(compute[:ticks], dog.overruns, dt), safety=layer.counters.as_dict(),
+        read_failures=dog.read_failures, final_state=state,
+    )

@@ -1,0 +1,133 @@
+"""Safety layer between controller and robot, and the watchdog.
+
+Per tick, on the controller's command (`SafetyLayer.filter`):
+
+1. Non-finite targets (NaN, ±inf) anywhere in ``q`` or ``dq_max``: the whole command is replaced by
+   the last good one (held), and ``nonfinite_held`` counts it.
+2. Soft limits: ``q`` is clamped to ``[lower + margin, upper - margin]`` of the description.
+3. Maximum step: ``|q - q_last_sent| <= max_step`` with ``max_step = fraction · v_max · dt`` per joint
+   (v_max from the description, by default the servo's no-load speed), so no target can jump; at
+   start-up ``q_last_sent`` is the present position, which is what makes arming jump-free.
+
+`Watchdog` counts consecutive failed reads and consecutive loop overruns; past their tolerance it
+trips, and the loop disarms the robot (torque off) and stops.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from felis.hal import Command
+from felis.spec import RobotSpec
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Tunables of the safety layer and watchdog (defaults suit both robots)."""
+
+    soft_margin: float = 0.0  # rad (m) kept inside each joint's range
+    max_speed_fraction: float = 1.0  # max step per tick as a fraction of v_max·dt
+    read_fail_tolerance: int = 3  # consecutive failed reads tolerated; one more trips
+    overrun_tolerance: int = 10  # consecutive overruns tolerated (wall clock only)
+
+    def __post_init__(self):
+        if self.soft_margin < 0 or not 0 < self.max_speed_fraction <= 10:
+            raise ValueError("soft_margin must be ≥ 0 and max_speed_fraction in (0, 10]")
+        if self.read_fail_tolerance < 0 or self.overrun_tolerance < 0:
+            raise ValueError("watchdog tolerances must be ≥ 0")
+
+
+@dataclass
+class SafetyCounters:
+    limit_clamps: int = 0  # ticks on which some target was clamped to the soft limits
+    step_clamps: int = 0  # ticks on which some target was rate-limited
+    nonfinite_held: int = 0  # ticks on which a non-finite command was replaced by the last good one
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+class SafetyLayer:
+    """Filters commands: non-finite → hold, soft limits, maximum step per tick."""
+
+    def __init__(self, spec: RobotSpec, dt: float, config: SafetyConfig | None = None):
+        self.config = config or SafetyConfig()
+        margin = self.config.soft_margin
+        self.lower = spec.lower + margin
+        self.upper = spec.upper - margin
+        if np.any(self.lower > self.upper):
+            raise ValueError(f"soft_margin {margin} leaves no range for some joint of {spec.name}")
+        self.max_step = self.config.max_speed_fraction * spec.max_velocity * dt
+        self.counters = SafetyCounters()
+        self.events: list[tuple[str, dict]] = []  # this tick's events, for the log
+        self._last: Command | None = None
+
+    def reset(self, q_present: np.ndarray) -> None:
+        """Start from the present position: the first targets may move at most one step from it."""
+        q0 = np.clip(np.asarray(q_present, dtype=float), self.lower, self.upper)
+        self._last = Command(q=q0)
+
+    @property
+    def last(self) -> Command:
+        if self._last is None:
+            raise RuntimeError("SafetyLayer.reset() must be called with the present position first")
+        return self._last
+
+    def filter(self, command: Command) -> Command:
+        last = self.last
+        self.events = []
+        q = np.asarray(command.q, dtype=float)
+        dq_max = None if command.dq_max is None else np.asarray(command.dq_max, dtype=float)
+        if q.shape != last.q.shape or not np.all(np.isfinite(q)) or (
+                dq_max is not None and not np.all(np.isfinite(dq_max))):
+            self.counters.nonfinite_held += 1
+            bad = [int(i) for i in np.flatnonzero(~np.isfinite(q))] if q.shape == last.q.shape else []
+            self.events.append(("nonfinite_held", {"joints": bad, "shape": list(q.shape)}))
+            return last
+        clamped = np.clip(q, self.lower, self.upper)
+        if np.any(clamped != q):
+            self.counters.limit_clamps += 1
+            self.events.append(("limit_clamp", {"joints": np.flatnonzero(clamped != q).tolist()}))
+        stepped = np.clip(clamped, last.q - self.max_step, last.q + self.max_step)
+        if np.any(stepped != clamped):
+            self.counters.step_clamps += 1
+        return command.replace(q=stepped, dq_max=dq_max)
+
+    def sent(self, command: Command) -> None:
+        """Record what the robot actually sent: the reference for the next step limit and hold."""
+        self._last = command
+
+
+@dataclass
+class Watchdog:
+    """Trips after too many consecutive read failures or (wall clock) loop overruns."""
+
+    read_fail_tolerance: int = 3
+    overrun_tolerance: int = 10
+    read_failures: int = 0  # total
+    overruns: int = 0  # total
+    tripped: str | None = None
+    _fail_run: int = field(default=0, repr=False)
+    _overrun_run: int = field(default=0, repr=False)
+
+    def read_ok(self) -> None:
+        self._fail_run = 0
+
+    def read_failed(self, error: Exception) -> bool:
+        self.read_failures += 1
+        self._fail_run += 1
+        if self._fail_run > self.read_fail_tolerance and not self.tripped:
+            self.tripped = f"{self._fail_run} consecutive read failures (last: {error})"
+        return self.tripped is not None
+
+    def tick(self, overrun: bool, enforce: bool) -> bool:
+        if overrun:
+            self.overruns += 1
+            self._overrun_run += 1
+        else:
+            self._overrun_run = 0
+        if enforce and self._overrun_run > self.overrun_tolerance and not self.tripped:
+            self.tripped = f"{self._overrun_run} consecutive loop overruns"
+        return self.tripped is not None
