@@ -1,0 +1,269 @@
+"""`MujocoRobot`: the HAL's `Robot` on a MuJoCo model.
+
+Physics runs at the model's timestep (1 kHz in the shipped models); ``advance(dt)`` steps
+``round(dt / timestep)`` times in one native call. Each actuated joint of the description is a
+position actuator of the same name in the MJCF; its gains come from the servo model
+(`felis.sim.servo`), so description and servo datasheet stay the one source.
+
+Torque off (connected, or ``Command.torque`` False) zeroes the actuator's gain and bias: the joint
+is then moved only by gravity, contacts, back-EMF damping and friction, like an unpowered servo.
+Readings are quantised like the servo's (4096 ticks per turn, 0.229 rpm), ``effort`` is the motor
+torque (actuator force minus back-EMF), ``height`` is the waist site's height above the floor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from importlib import resources
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from felis.errors import FelisError, SimulationError
+from felis.hal import Command, Faults, Imu, RobotBase, State
+from felis.servos import servo_model
+from felis.spec import RobotSpec
+from felis.sim.servo import ServoParams, quantize_position, quantize_velocity, servo_params
+
+MODELS_DIR = resources.files("felis.sim") / "models"
+TOUCH_THRESHOLD_N = 1e-3
+
+
+class ModelMismatch(FelisError):
+    """The MJCF model does not match the robot description."""
+
+
+def model_path(spec: RobotSpec) -> Path:
+    path = Path(str(MODELS_DIR / spec.model))
+    if not path.is_file():
+        raise ModelMismatch(f"{spec.source}: model: no MJCF file {spec.model!r} in {MODELS_DIR}")
+    return path
+
+
+class MujocoRobot(RobotBase):
+    """Simulated robot.
+
+    Args:
+        spec: the robot description.
+        model: path to an MJCF file (default: ``felis/sim/models/<spec.model>``).
+        servo: per-joint `ServoParams` overriding the datasheet model (e.g. from system
+            identification); joints not named keep the datasheet values.
+        quantize: report positions/velocities in encoder resolution, as a real servo does.
+    """
+
+    def __init__(self, spec: RobotSpec, model: str | Path | None = None,
+                 servo: dict[str, ServoParams] | None = None, quantize: bool = True):
+        super().__init__(spec)
+        self._model_file = Path(model) if model is not None else model_path(spec)
+        self._servo_override = dict(servo or {})
+        unknown = set(self._servo_override) - set(spec.names)
+        if unknown:
+            raise ModelMismatch(f"servo parameters for unknown joints: {', '.join(sorted(unknown))}")
+        self.quantize = quantize
+        self.model: mujoco.MjModel | None = None
+        self.data: mujoco.MjData | None = None
+        self.substep_hook: Callable[[mujoco.MjModel, mujoco.MjData], None] | None = None
+        self._goal = np.zeros(spec.n)
+        self._dq_max: np.ndarray | None = None
+        self._torque = np.zeros(spec.n, dtype=bool)
+
+    # ------------------------------------------------------------------ connect / model checks
+    def _connect(self) -> None:
+        try:
+            m = mujoco.MjModel.from_xml_path(str(self._model_file))
+        except ValueError as e:
+            first = str(e).strip().splitlines()[0] if str(e).strip() else "cannot load"
+            raise ModelMismatch(f"{self._model_file}: {first}") from None
+        spec = self.spec
+        self.model, self.data = m, mujoco.MjData(m)
+        n = spec.n
+        self._qadr = np.zeros(n, dtype=int)
+        self._dadr = np.zeros(n, dtype=int)
+        self._act = np.zeros(n, dtype=int)
+        self._jid = np.zeros(n, dtype=int)
+        for i, j in enumerate(spec.joints):
+            jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j.name)
+            if jid < 0:
+                raise ModelMismatch(f"{self._model_file.name}: no joint {j.name!r} (from {spec.source})")
+            want = mujoco.mjtJoint.mjJNT_SLIDE if j.kind == "prismatic" else mujoco.mjtJoint.mjJNT_HINGE
+            if m.jnt_type[jid] != want:
+                raise ModelMismatch(f"{self._model_file.name}: joint {j.name!r} is not {j.kind}")
+            lo, hi = m.jnt_range[jid]
+            if not (m.jnt_limited[jid] and abs(lo - j.lower) < 1e-6 and abs(hi - j.upper) < 1e-6):
+                raise ModelMismatch(
+                    f"{self._model_file.name}: joint {j.name!r} range {lo:.6g}…{hi:.6g} differs from "
+                    f"{spec.source} ({j.lower:.6g}…{j.upper:.6g})")
+            aid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, j.name)
+            if aid < 0 or m.actuator_trnid[aid, 0] != jid:
+                raise ModelMismatch(f"{self._model_file.name}: no actuator {j.name!r} driving joint {j.name!r}")
+            self._jid[i], self._act[i] = jid, aid
+            self._qadr[i], self._dadr[i] = m.jnt_qposadr[jid], m.jnt_dofadr[jid]
+        self._m_per_rad = np.array([j.m_per_rad for j in spec.joints])
+        self.servo = {j.name: self._servo_override.get(j.name) or servo_params(servo_model(j.servo),
+                                                                               m_per_rad=j.m_per_rad)
+                      for j in spec.joints}
+        self._kp = np.array([self.servo[j.name].kp for j in spec.joints])
+        self._damping = np.array([self.servo[j.name].damping for j in spec.joints])
+        for i, j in enumerate(spec.joints):
+            p, aid, dof = self.servo[j.name], self._act[i], self._dadr[i]
+            m.actuator_forcerange[aid] = (-p.torque_limit, p.torque_limit)
+            m.actuator_forcelimited[aid] = 1
+            m.actuator_ctrlrange[aid] = (j.lower, j.upper)
+            m.actuator_ctrllimited[aid] = 1
+            m.dof_damping[dof] = p.damping
+            m.dof_armature[dof] = p.armature
+            m.dof_frictionloss[dof] = p.frictionloss
+        self._sensors(m)
+        self._faults = Faults.none(n)
+        self._set_torque(np.zeros(n, dtype=bool))
+        mujoco.mj_resetData(m, self.data)
+        if m.nkey > 0:
+            mujoco.mj_resetDataKeyframe(m, self.data, 0)
+        self._goal = self.data.qpos[self._qadr].copy()
+        self.data.ctrl[self._act] = self._goal
+        mujoco.mj_forward(m, self.data)
+
+    def _sensor_for(self, m, stype, objtype, objid) -> int | None:
+        for s in range(m.nsensor):
+            if m.sensor_type[s] == stype and m.sensor_objtype[s] == objtype and m.sensor_objid[s] == objid:
+                return int(m.sensor_adr[s])
+        return None
+
+    def _sensors(self, m: mujoco.MjModel) -> None:
+        sens = self.spec.sensors
+        S, O = mujoco.mjtSensor, mujoco.mjtObj
+        self._imu = None
+        if sens.imu is not None:
+            sid = mujoco.mj_name2id(m, O.mjOBJ_SITE, sens.imu)
+            if sid < 0:
+                raise ModelMismatch(f"{self._model_file.name}: no IMU site {sens.imu!r}")
+            adr = [self._sensor_for(m, t, O.mjOBJ_SITE, sid)
+                   for t in (S.mjSENS_FRAMEQUAT, S.mjSENS_GYRO, S.mjSENS_ACCELEROMETER)]
+            if None in adr:
+                raise ModelMismatch(f"{self._model_file.name}: IMU site {sens.imu!r} needs framequat, gyro "
+                                    "and accelerometer sensors")
+            self._imu = adr
+        self._touch = None
+        if sens.contacts:
+            adrs = []
+            for foot in sens.contacts:
+                bid = mujoco.mj_name2id(m, O.mjOBJ_BODY, foot)
+                found = None
+                for s in range(m.nsensor):
+                    if (m.sensor_type[s] == S.mjSENS_TOUCH and bid >= 0
+                            and m.site_bodyid[m.sensor_objid[s]] == bid):
+                        found = int(m.sensor_adr[s])
+                if found is None:
+                    raise ModelMismatch(f"{self._model_file.name}: foot {foot!r} has no touch sensor")
+                adrs.append(found)
+            self._touch = np.array(adrs)
+        self._height_site = None
+        if sens.height is not None:
+            sid = mujoco.mj_name2id(m, O.mjOBJ_SITE, sens.height)
+            if sid < 0:
+                raise ModelMismatch(f"{self._model_file.name}: no height site {sens.height!r}")
+            self._height_site = sid
+
+    # ------------------------------------------------------------------ torque
+    def _set_torque(self, mask: np.ndarray) -> None:
+        m = self.model
+        for i, on in enumerate(mask):
+            if on == self._torque[i] and m.actuator_gainprm[self._act[i], 0] == (self._kp[i] if on else 0):
+                continue
+            kp = self._kp[i] if on else 0.0
+            m.actuator_gainprm[self._act[i], 0] = kp
+            m.actuator_biasprm[self._act[i], 1] = -kp
+        self._torque = np.array(mask, dtype=bool)
+
+    def _arm(self) -> None:
+        d = self.data
+        self._goal = d.qpos[self._qadr].copy()  # goal = present: no jump
+        d.ctrl[self._act] = self._goal
+        self._dq_max = None
+        self._set_torque(np.ones(self.spec.n, dtype=bool))
+
+    def _disarm(self) -> None:
+        if self.model is not None:
+            self._set_torque(np.zeros(self.spec.n, dtype=bool))
+
+    # ------------------------------------------------------------------ I/O
+    def _read(self) -> State:
+        m, d = self.model, self.data
+        q = d.qpos[self._qadr]
+        dq = d.qvel[self._dadr]
+        if self.quantize:
+            q = quantize_position(q, self._m_per_rad)
+            dq = quantize_velocity(dq, self._m_per_rad)
+        else:
+            q, dq = q.copy(), dq.copy()
+        effort = d.actuator_force[self._act] - self._damping * d.qvel[self._dadr]
+        sd = d.sensordata
+        imu = None
+        if self._imu is not None:
+            a, g, c = self._imu
+            imu = Imu(quat=sd[a:a + 4].copy(), gyro=sd[g:g + 3].copy(), accel=sd[c:c + 3].copy())
+        contacts = None if self._touch is None else sd[self._touch] > TOUCH_THRESHOLD_N
+        height = None if self._height_site is None else float(d.site_xpos[self._height_site, 2])
+        return State(t=float(d.time), q=q, dq=dq, effort=effort, imu=imu, contacts=contacts,
+                     height=height, faults=self._faults)
+
+    def _write(self, command: Command) -> Command:
+        q = np.clip(command.q, self.spec.lower, self.spec.upper)
+        torque = command.torque
+        if torque is not None:
+            torque = np.asarray(torque, dtype=bool)
+            if torque.shape != (self.spec.n,):
+                raise ValueError(f"torque mask has {torque.size} entries, robot has {self.spec.n} joints")
+            if not np.array_equal(torque, self._torque):
+                self._set_torque(torque)
+        elif not self._torque.all():
+            self._set_torque(np.ones(self.spec.n, dtype=bool))
+        self._goal = q
+        self._dq_max = None if command.dq_max is None else np.abs(np.asarray(command.dq_max, dtype=float))
+        if self._dq_max is None:
+            self.data.ctrl[self._act] = q
+        return command.replace(q=q, torque=torque)
+
+    def _advance(self, dt: float) -> None:
+        m, d = self.model, self.data
+        nstep = max(1, int(round(dt / m.opt.timestep)))
+        if self._dq_max is not None:  # profile velocity: move the actuator target at most dq_max·dt
+            cur = d.ctrl[self._act]
+            lim = self._dq_max * dt
+            d.ctrl[self._act] = cur + np.clip(self._goal - cur, -lim, lim)
+        if self.substep_hook is None:
+            mujoco.mj_step(m, d, nstep)
+        else:
+            for _ in range(nstep):
+                mujoco.mj_step(m, d)
+                self.substep_hook(m, d)
+        if not np.isfinite(d.qacc).all() or d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0:
+            raise SimulationError(f"{self.spec.name}: physics diverged at t={d.time:.3f} s (bad accelerations)")
+
+    def _close(self) -> None:
+        self.model = self.data = None
+
+    # ------------------------------------------------------------------ sim-only helpers
+    def body_id(self, name: str) -> int:
+        bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if bid < 0:
+            names = [self.model.body(i).name for i in range(1, self.model.nbody)]
+            raise FelisError(f"{self.spec.name} has no body {name!r}; bodies: {', '.join(names)}")
+        return bid
+
+    @property
+    def root_body(self) -> int:
+        """The robot's root body (child of the world); its subtree is the whole robot."""
+        roots = np.flatnonzero(self.model.body_parentid[1:] == 0) + 1
+        return int(roots[0]) if roots.size else 0
+
+    @property
+    def free_joint(self) -> int | None:
+        """Address in qpos of the free (floating-base) joint, or None for a fixed-base robot."""
+        free = np.flatnonzero(self.model.jnt_type == mujoco.mjtJoint.mjJNT_FREE)
+        return int(self.model.jnt_qposadr[free[0]]) if free.size else None
+
+    def mass(self) -> float:
+        """Total mass of the robot (kg): the subtree of its root body."""
+        return float(self.model.body_subtreemass[self.root_body])
