@@ -1,0 +1,1 @@
+"""Calibration (`felis.calib`): motor set-up, joint calibration, system identification. Not built yet."""
