@@ -1,0 +1,1 @@
+"""The ``felis`` command (`felis.cli.main`): wires backends, controllers and learning together."""

@@ -1,0 +1,126 @@
+"""One simulated run for the CLI: robot, scenario, controller, log, video, plot, summary.
+
+Used by ``felis sim drop``, ``felis sim render``, ``felis run`` and ``felis demo``. Every input is
+checked before any file is created, so bad input writes nothing; a video is written to a temporary
+file and moved into place at the end, the MCAP log is written incrementally.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from felis.controllers import make_controller
+from felis.errors import ParameterError
+from felis.loop import LoopReport, run_loop
+from felis.spec import load_spec
+
+
+@dataclass
+class Episode:
+    """What to run. ``drop`` is (height m, roll°, pitch°, yaw°) or None (start from the model's pose)."""
+
+    robot: str = "cat"
+    controller: str = "stand"
+    duration: float = 2.0
+    drop: tuple[float, float, float, float] | None = None
+    log: Path | None = None
+    video: Path | None = None
+    plot: Path | None = None
+    fps: float = 30.0
+    size: tuple[int, int] = (640, 480)
+    clock: str = "sim"
+    progress: object | None = None  # a loop monitor that shows progress (CLI)
+    meta: dict = field(default_factory=dict)
+
+
+@dataclass
+class EpisodeResult:
+    report: LoopReport
+    landing: object | None  # felis.sim.landing.Landing for drops
+    drop: object | None
+    files: dict[str, str]
+
+    def as_dict(self) -> dict:
+        out = {"run": self.report.as_dict(), "files": self.files}
+        if self.drop is not None:
+            d = self.drop
+            out["drop"] = {"height_m": d.height, "roll_deg": d.roll, "pitch_deg": d.pitch, "yaw_deg": d.yaw,
+                           "free_fall_s": round(d.fall_time, 4)}
+        if self.landing is not None:
+            out["landing"] = self.landing.as_dict()
+        return out
+
+
+def _check(ep: Episode) -> None:
+    if not (ep.duration > 0 and ep.duration <= 3600):
+        raise ParameterError(f"duration must be within 0…3600 s, got {ep.duration}")
+    from felis.sim.render import check_target
+
+    if ep.video is not None:
+        check_target(ep.video)
+    if ep.plot is not None and Path(ep.plot).suffix.lower() != ".png":
+        raise ParameterError(f"{ep.plot}: plot output must end in .png")
+    if ep.log is not None and Path(ep.log).suffix.lower() != ".mcap":
+        raise ParameterError(f"{ep.log}: log file must end in .mcap")
+    for p in (ep.video, ep.plot, ep.log):
+        if p is not None and Path(p).is_dir():
+            raise ParameterError(f"{p} is a directory; give a file name")
+
+
+def run_episode(ep: Episode) -> EpisodeResult:
+    from felis.sim import MujocoRobot
+    from felis.sim.landing import ImpactRecorder, assess_landing
+    from felis.sim.scenarios import drop
+
+    spec = load_spec(ep.robot)
+    controller = make_controller(ep.controller)
+    _check(ep)
+    robot = MujocoRobot(spec)
+    files: dict[str, str] = {}
+    with robot:
+        info = drop(robot, *ep.drop) if ep.drop is not None else None
+        recorder = ImpactRecorder(robot).attach() if info is not None else None
+        monitors = []
+        video = None
+        if ep.video is not None:
+            from felis.sim.render import VideoRecorder
+
+            video = VideoRecorder(robot, ep.video, fps=ep.fps, width=ep.size[0], height=ep.size[1])
+            monitors.append(video)
+        if ep.progress is not None:
+            monitors.append(ep.progress)
+        log = None
+        if ep.log is not None:
+            from felis.runlog import RunLog
+
+            meta = {"controller": ep.controller, "backend": "sim", **ep.meta}
+            if info is not None:
+                meta["drop"] = {"height_m": info.height, "roll_deg": info.roll, "pitch_deg": info.pitch,
+                                "yaw_deg": info.yaw}
+            log = RunLog(ep.log, spec, meta)
+        landing = None
+        try:
+            report = run_loop(robot, controller, duration=ep.duration, clock=ep.clock, log=log,
+                              monitors=monitors)
+            if info is not None:
+                landing = assess_landing(robot, recorder)
+        except BaseException:
+            if video is not None:
+                video.abort()
+            if log is not None:
+                log.close({"error": "run aborted"})
+            raise
+        if log is not None:
+            summary = {"run": report.as_dict()}
+            if landing is not None:
+                summary["landing"] = landing.as_dict()
+            log.close(summary)
+            files["log"] = str(ep.log)
+        if video is not None:
+            files["video"] = str(video.close())
+    if ep.plot is not None and ep.log is not None:
+        from felis.plotlog import plot_log
+
+        files["plot"] = str(plot_log(ep.log, ep.plot))
+    return EpisodeResult(report=report, landing=landing, drop=info, files=files)

@@ -1,0 +1,373 @@
+"""``felis``: the command line.
+
+Every failure an operator can cause (bad arguments, unknown robot, malformed description, missing
+file, invalid parameters) prints one line, ``error: …``, and exits non-zero (2 for usage, 1 for
+the rest); ``--debug`` shows the traceback instead. ``--json`` prints machine-readable results.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+from felis.errors import FelisError, ParameterError
+
+EXIT_ERROR, EXIT_USAGE = 1, 2
+
+
+class UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports errors as one line (no usage dump)."""
+
+    def error(self, message: str):  # noqa: D401
+        raise UsageError(f"{self.prog}: {message} (see `{self.prog} --help`)")
+
+
+def _float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if v != v or v in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
+    return v
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text!r}") from None
+    if not (16 <= w <= 1920 and 16 <= h <= 1080):
+        raise argparse.ArgumentTypeError(f"size {w}x{h} outside 16x16…1920x1080")
+    return w, h
+
+
+# --------------------------------------------------------------------------------- output helpers
+def _console():
+    from rich.console import Console
+
+    return Console(highlight=False)
+
+
+def _print_json(obj) -> None:
+    print(json.dumps(obj, indent=2, default=str))
+
+
+class _Progress:
+    """Loop monitor: a progress bar over simulated time (quiet when not a terminal)."""
+
+    def __init__(self, label: str, duration: float):
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.enabled = sys.stderr.isatty()
+        self.duration = duration
+        self._bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[t]}"),
+                             TimeElapsedColumn(), transient=True, disable=not self.enabled)
+        self._task = self._bar.add_task(label, total=duration, t="")
+        self._t0 = None
+
+    def reset(self, spec, state) -> None:
+        self._t0 = state.t
+        self._bar.start()
+
+    def __call__(self, state, command) -> None:
+        t = state.t - (self._t0 or 0.0)
+        self._bar.update(self._task, completed=t, t=f"t={t:.2f} s")
+
+    def stop(self) -> None:
+        self._bar.stop()
+
+
+def _print_result(res, console) -> None:
+    r = res.report
+    t = r.timing
+    console.print(f"[bold]{r.robot}[/] · controller {r.controller} · {r.ticks} ticks at {r.rate_hz:g} Hz "
+                  f"({r.sim_time_s:.2f} s simulated in {r.wall_time_s:.2f} s) · stopped: {r.stopped}")
+    console.print(f"loop: compute mean {t.mean_ms:.3f} ms, p99 {t.p99_ms:.3f} ms, max {t.max_ms:.3f} ms, "
+                  f"{t.overruns} overruns of the {t.period_ms:g} ms period; safety {r.safety}")
+    if res.drop is not None:
+        console.print(f"drop: {res.drop.height:g} m, roll {res.drop.roll:g}° pitch {res.drop.pitch:g}° "
+                      f"yaw {res.drop.yaw:g}° (free fall √(2h/g) = {res.drop.fall_time:.3f} s)")
+    if res.landing is not None:
+        colour = "green" if res.landing.on_feet else "yellow"
+        console.print(f"[{colour}]{res.landing.summary()}[/]")
+    for kind, path in res.files.items():
+        console.print(f"{kind}: {path}")
+
+
+def _episode(args, **kw):
+    from felis.cli.episode import Episode, run_episode
+
+    ep = Episode(**kw)
+    progress = None
+    if not getattr(args, "json", False):
+        progress = _Progress(f"{ep.robot} {ep.controller}", ep.duration)
+        ep.progress = progress
+    try:
+        return run_episode(ep)
+    finally:
+        if progress is not None:
+            progress.stop()
+
+
+# --------------------------------------------------------------------------------- commands
+def cmd_doctor(args) -> int:
+    from felis.cli.doctor import FAIL, as_json, run_checks
+
+    checks = run_checks()
+    if args.json:
+        _print_json(as_json(checks))
+    else:
+        console = _console()
+        style = {"ok": "green", "warn": "yellow", "fail": "red", "info": "cyan"}
+        for c in checks:
+            line = f"[{style[c.status]}]{c.status:>4}[/]  {c.name}: {c.detail}"
+            if c.fix:
+                line += f"\n      fix: {c.fix}"
+            console.print(line)
+    return EXIT_ERROR if any(c.status == FAIL for c in checks) else 0
+
+
+def _drop_args(args) -> tuple[float, float, float, float] | None:
+    if args.height is None:
+        if any(v != 0 for v in (args.roll, args.pitch, args.yaw)):
+            raise ParameterError("--roll/--pitch/--yaw need --height (the drop height in metres)")
+        return None
+    return (args.height, args.roll, args.pitch, args.yaw)
+
+
+def cmd_sim_drop(args) -> int:
+    res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
+                   drop=(args.height, args.roll, args.pitch, args.yaw), log=args.log, video=args.video)
+    if args.json:
+        _print_json(res.as_dict())
+    else:
+        _print_result(res, _console())
+    return 0 if res.report.ok else EXIT_ERROR
+
+
+def cmd_sim_render(args) -> int:
+    res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
+                   drop=_drop_args(args), video=args.out, fps=args.fps, size=args.size)
+    if args.json:
+        _print_json(res.as_dict())
+    else:
+        _print_result(res, _console())
+    return 0 if res.report.ok else EXIT_ERROR
+
+
+def cmd_sim_view(args) -> int:
+    from felis.cli.doctor import has_display
+
+    if not has_display():
+        raise FelisError("no display here (DISPLAY/WAYLAND_DISPLAY unset): the viewer cannot open; "
+                         "use `felis sim render --out FILE.mp4` instead")
+    import mujoco.viewer
+
+    from felis.controllers import make_controller
+    from felis.loop import run_loop
+    from felis.sim import MujocoRobot
+    from felis.sim.scenarios import drop
+    from felis.spec import load_spec
+
+    spec = load_spec(args.robot)
+    controller = make_controller(args.controller)
+    drop_args = _drop_args(args)
+    with MujocoRobot(spec) as robot:
+        if drop_args is not None:
+            drop(robot, *drop_args)
+        with mujoco.viewer.launch_passive(robot.model, robot.data) as viewer:
+
+            class _Sync:
+                def __call__(self, state, command):
+                    if not viewer.is_running():
+                        raise KeyboardInterrupt
+                    viewer.sync()
+
+            run_loop(robot, controller, duration=args.duration, clock="wall", monitors=[_Sync()])
+    return 0
+
+
+def cmd_run(args) -> int:
+    if args.backend != "sim":
+        raise FelisError(f"backend {args.backend!r} is not available yet: only 'sim' (the Dynamixel backend "
+                         "arrives with felis.drivers)")
+    res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration, log=args.log,
+                   clock=args.clock)
+    if args.json:
+        _print_json(res.as_dict())
+    else:
+        _print_result(res, _console())
+    return 0 if res.report.ok else EXIT_ERROR
+
+
+def cmd_log_info(args) -> int:
+    from felis.runlog import log_info
+
+    info = log_info(args.file)
+    if args.json:
+        _print_json(info)
+    else:
+        console = _console()
+        for k, v in info.items():
+            console.print(f"[bold]{k}[/]: {v}")
+    return 0
+
+
+def cmd_log_plot(args) -> int:
+    from felis.plotlog import plot_log
+
+    out = plot_log(args.file, args.out)
+    print(f"plot: {out}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    """The cat dropped upside-down from 1 m under the stand controller."""
+    root = Path(args.out)
+    if root.exists() and not root.is_dir():
+        raise ParameterError(f"{root} exists and is not a directory")
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    run_dir = root / stamp
+    n = 1
+    while run_dir.exists():
+        n += 1
+        run_dir = root / f"{stamp}-{n}"
+    console = _console()
+    console.print("[bold]felis demo[/]: the cat dropped upside-down from 1 m under the stand controller (MuJoCo)")
+    t0 = time.perf_counter()
+    res = _episode(args, robot="cat", controller="stand", duration=2.5, drop=(1.0, 180.0, 0.0, 0.0),
+                   log=run_dir / "drop.mcap", video=None if args.no_video else run_dir / "drop.mp4",
+                   plot=run_dir / "drop.png", meta={"demo": True})
+    _print_result(res, console)
+    console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {run_dir}/")
+    return 0 if res.report.ok else EXIT_ERROR
+
+
+# --------------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    import felis
+
+    p = _Parser(prog="felis", description="ROS-free robot control for Dynamixel servos and MuJoCo.")
+    p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    p.add_argument("--version", action="version", version=f"felis {felis.__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    d = sub.add_parser("doctor", help="check this machine: rendering, display, serial ports, latency timer")
+    d.add_argument("--json", action="store_true", help="print results as JSON")
+    d.set_defaults(func=cmd_doctor)
+
+    demo = sub.add_parser("demo", help="drop the simulated cat upside-down; write log, video and plot")
+    demo.add_argument("--out", default="runs", help="directory for runs/<timestamp>/ (default: runs)")
+    demo.add_argument("--no-video", action="store_true", help="skip rendering")
+    demo.set_defaults(func=cmd_demo)
+
+    run = sub.add_parser("run", help="run a controller on a robot")
+    run.add_argument("controller", help="controller name: hold, stand, sit, zero")
+    run.add_argument("--robot", required=True, help="robot name (cat, arm) or a description .toml")
+    run.add_argument("--backend", default="sim", choices=["sim", "dynamixel"], help="where to run (default sim)")
+    run.add_argument("--duration", type=_float, default=3.0, help="seconds (default 3)")
+    run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
+    run.add_argument("--clock", choices=["sim", "wall"], default="sim",
+                     help="sim: as fast as possible; wall: real time (default sim)")
+    run.add_argument("--json", action="store_true", help="print the run report as JSON")
+    run.set_defaults(func=cmd_run)
+
+    sim = sub.add_parser("sim", help="simulation: drop, render, view")
+    simsub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", parser_class=_Parser)
+    sim.set_defaults(func=lambda a: _missing(sim))
+
+    def scenario_args(sp, need_height: bool):
+        sp.add_argument("--robot", default="cat", help="robot name or description file (default cat)")
+        sp.add_argument("--height", type=_float, required=need_height, help="drop height of the lowest point (m)")
+        sp.add_argument("--roll", type=_float, default=0.0, help="initial roll (deg)")
+        sp.add_argument("--pitch", type=_float, default=0.0, help="initial pitch (deg)")
+        sp.add_argument("--yaw", type=_float, default=0.0, help="initial yaw (deg)")
+        sp.add_argument("--controller", default="stand", help="controller during the run (default stand)")
+        sp.add_argument("--duration", type=_float, default=2.0, help="simulated seconds (default 2)")
+
+    drop = simsub.add_parser("drop", help="drop the robot and report how it lands")
+    scenario_args(drop, need_height=True)
+    drop.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
+    drop.add_argument("--video", type=Path, help="render to this file (.mp4, .gif, .png)")
+    drop.add_argument("--json", action="store_true", help="print results as JSON")
+    drop.set_defaults(func=cmd_sim_drop)
+
+    render = simsub.add_parser("render", help="render a run offscreen to MP4, GIF or PNG (film strip)")
+    scenario_args(render, need_height=False)
+    render.add_argument("--out", type=Path, required=True, help="output file: .mp4, .gif or .png")
+    render.add_argument("--fps", type=_float, default=30.0, help="frames per second (default 30)")
+    render.add_argument("--size", type=_size, default=(640, 480), help="WIDTHxHEIGHT (default 640x480)")
+    render.add_argument("--json", action="store_true", help="print results as JSON")
+    render.set_defaults(func=cmd_sim_render)
+
+    view = simsub.add_parser("view", help="open the interactive viewer (needs a display)")
+    scenario_args(view, need_height=False)
+    view.set_defaults(func=cmd_sim_view)
+
+    log = sub.add_parser("log", help="inspect run logs (MCAP)")
+    logsub = log.add_subparsers(dest="log_command", metavar="LOG_COMMAND", parser_class=_Parser)
+    log.set_defaults(func=lambda a: _missing(log))
+    info = logsub.add_parser("info", help="summary of a log: robot, duration, messages, events")
+    info.add_argument("file", type=Path)
+    info.add_argument("--json", action="store_true", help="print as JSON")
+    info.set_defaults(func=cmd_log_info)
+    plot = logsub.add_parser("plot", help="plot joints, commands, height and tilt to PNG")
+    plot.add_argument("file", type=Path)
+    plot.add_argument("--out", type=Path, required=True, help="PNG file to write")
+    plot.set_defaults(func=cmd_log_plot)
+    return p
+
+
+def _missing(parser: argparse.ArgumentParser) -> int:
+    raise UsageError(f"{parser.prog}: missing sub-command (see `{parser.prog} --help`)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    debug = "--debug" in argv
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.command is None:
+            parser.print_help()
+            return EXIT_USAGE
+        if args.command in ("demo", "sim", "run") and "MUJOCO_GL" not in os.environ:
+            from felis.cli.doctor import has_display
+
+            if not has_display():
+                os.environ["MUJOCO_GL"] = "egl"
+        return int(args.func(args) or 0)
+    except UsageError as e:
+        if debug:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except FelisError as e:
+        if debug:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_ERROR
+    except BrokenPipeError:  # output piped into e.g. `head`
+        return 0
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # noqa: BLE001 - the CLI's contract: one line unless --debug
+        if debug:
+            raise
+        print(f"error: internal: {type(e).__name__}: {e} (run with --debug for the traceback)", file=sys.stderr)
+        return EXIT_ERROR
+
+
+if __name__ == "__main__":
+    sys.exit(main())
