@@ -1,0 +1,364 @@
+"""Run logs (felis.runlog) and their plot (felis.plotlog): round trip, crash safety, errors.
+
+Real MCAP files in tmp_path; the crash test SIGKILLs a real child process mid-run.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from felis.errors import LogError
+from felis.hal import Command, Faults, Imu, State
+from felis.plotlog import plot_log, tilt_deg
+from felis.runlog import LogData, RunLog, log_info, read_log
+from felis.spec import load_spec
+
+RATE = 100.0
+
+
+@pytest.fixture(scope="module")
+def spec():
+    return load_spec("cat")
+
+
+def make_state(i: int, n: int) -> State:
+    t = i / RATE
+    k = np.arange(n)
+    q = 0.3 * np.sin(2 * np.pi * 0.5 * t + k) + 1e-3 * k
+    dq = 0.3 * np.pi * np.cos(2 * np.pi * 0.5 * t + k)
+    roll = 0.2 * np.sin(t)
+    quat = np.array([np.cos(roll / 2), np.sin(roll / 2), 0.0, 0.0])
+    faults = Faults(hardware=np.where(k == 3, 4 if i == 150 else 0, 0).astype(np.int32), comm_errors=i // 100)
+    return State(t=t, q=q, dq=dq, effort=0.01 * q, height=0.25 - 0.1 * t / 2,
+                 imu=Imu(quat=quat, gyro=np.array([0.2 * np.cos(t), 0.0, 0.0]), accel=np.array([0, 0, 9.81])),
+                 contacts=np.array([True, True, i % 2 == 0, False]), faults=faults)
+
+
+def make_command(i: int, n: int) -> Command:
+    return Command(q=0.3 * np.sin(2 * np.pi * 0.5 * (i + 1) / RATE + np.arange(n)), dq_max=np.full(n, 5.0))
+
+
+def write_run(path: Path, spec, ticks: int = 200, summary: dict | None = None) -> list[State]:
+    states = []
+    with RunLog(path, spec, meta={"scenario": "unit", "seed": 7}) as log:
+        for i in range(ticks):
+            s = make_state(i, spec.n)
+            states.append(s)
+            log.state(s)
+            log.command(s.t, make_command(i, spec.n))
+            if i == 50:
+                log.event(s.t, "clamp", joints=["tail_yaw"], by=np.float64(0.02))
+            if i in (120, 121):
+                log.event(s.t, "watchdog", reason="read failures", count=np.int64(i))
+        log.close(summary)
+    return states
+
+
+# ---------------------------------------------------------------------------------------------
+# round trip
+
+
+def test_round_trip(tmp_path, spec):
+    path = tmp_path / "run.mcap"
+    summary = {"ticks": 200, "overruns": 0, "mean_ms": 0.4}
+    states = write_run(path, spec, summary=summary)
+    data = read_log(path)
+    assert isinstance(data, LogData)
+    assert data.complete is True
+    assert data.joints == list(spec.names)
+    assert data.meta["robot"] == "cat" and data.meta["scenario"] == "unit" and data.meta["seed"] == 7
+    assert data.meta["rate_hz"] == spec.rate_hz
+    assert "felis_version" in data.meta and "started_utc" in data.meta
+    assert data.meta["groups"]["tail"] == ["tail_pitch", "tail_yaw"]
+    np.testing.assert_array_equal(data.t, [s.t for s in states])
+    np.testing.assert_array_equal(data.q, np.stack([s.q for s in states]))
+    np.testing.assert_array_equal(data.dq, np.stack([s.dq for s in states]))
+    np.testing.assert_array_equal(data.effort, np.stack([s.effort for s in states]))
+    np.testing.assert_array_equal(data.height, [s.height for s in states])
+    np.testing.assert_array_equal(data.quat, np.stack([s.imu.quat for s in states]))
+    np.testing.assert_array_equal(data.cmd_t, data.t)
+    np.testing.assert_array_equal(data.cmd_q, np.stack([make_command(i, spec.n).q for i in range(200)]))
+    assert data.q.shape == (200, 12) and data.quat.shape == (200, 4)
+    assert data.counts == {"/meta": 1, "/state": 200, "/command": 200, "/events": 3, "/summary": 1}
+    assert data.summary == summary
+    assert [e["kind"] for e in data.events] == ["clamp", "watchdog", "watchdog"]
+    assert data.events[0] == {"t": 0.5, "kind": "clamp", "detail": {"joints": ["tail_yaw"], "by": 0.02}}
+    assert data.events[2]["detail"] == {"reason": "read failures", "count": 121}
+
+
+def test_opens_with_standard_mcap_reader(tmp_path, spec):
+    path = tmp_path / "run.mcap"
+    write_run(path, spec, ticks=30, summary={"ok": True})
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        assert summary.statistics.message_count == 1 + 30 + 30 + 1  # meta, states, commands, summary
+        topics = {c.topic: c for c in summary.channels.values()}
+        assert set(topics) == {"/meta", "/state", "/command", "/events", "/summary"}
+        for ch in topics.values():
+            assert ch.message_encoding == "json"
+            schema = summary.schemas[ch.schema_id]
+            assert schema.encoding == "jsonschema" and json.loads(schema.data)["type"] == "object"
+        msgs = list(reader.iter_messages(topics=["/state"]))
+    assert len(msgs) == 30
+    _, channel, message = msgs[5]
+    body = json.loads(message.data)
+    assert message.log_time == int(body["t"] * 1e9) == 50_000_000
+    assert set(body) >= {"t", "q", "dq", "effort", "height", "imu", "contacts", "faults"}
+    assert body["faults"] == {"hardware": [0] * 12, "comm_errors": 0, "stale": None}
+    assert body["contacts"] == [True, True, False, False]
+
+
+def test_optional_fields_absent(tmp_path, spec):
+    """A state with only t, q, dq (e.g. the arm without sensors) reads back with None arrays."""
+    path = tmp_path / "bare.mcap"
+    with RunLog(path, spec) as log:
+        for i in range(5):
+            log.state(State(t=i * 0.01, q=np.zeros(spec.n), dq=np.ones(spec.n)))
+    data = read_log(path)
+    assert data.effort is None and data.height is None and data.quat is None
+    assert data.cmd_q.shape == (0, spec.n) and data.summary is None and data.complete
+
+
+def test_close_is_idempotent_and_exit_closes_on_exception(tmp_path, spec):
+    path = tmp_path / "boom.mcap"
+    with pytest.raises(RuntimeError):
+        with RunLog(path, spec) as log:
+            log.state(make_state(0, spec.n))
+            raise RuntimeError("controller blew up")
+    log.close()
+    log.close({"late": 1})  # already closed: no effect
+    data = read_log(path)
+    assert data.complete and data.counts["/state"] == 1 and data.summary is None
+    with pytest.raises(LogError, match="closed"):
+        log.state(make_state(1, spec.n))
+
+
+# ---------------------------------------------------------------------------------------------
+# crash safety
+
+CHILD = textwrap.dedent("""
+    import sys, time
+    import numpy as np
+    from felis.hal import Command, State
+    from felis.runlog import RunLog
+    from felis.spec import load_spec
+    spec = load_spec("cat")
+    log = RunLog(sys.argv[1], spec)
+    i = 0
+    while True:
+        t = i * 0.01
+        log.state(State(t=t, q=np.full(spec.n, float(i)), dq=np.zeros(spec.n), height=0.2))
+        log.command(t, Command(q=np.full(spec.n, float(i))))
+        if i % 25 == 0:
+            log.event(t, "tick", i=i)
+        i += 1
+        if i == 60:
+            open(sys.argv[2], "w").write(str(i))
+        time.sleep(0.0005)
+""")
+
+
+def test_killed_process_leaves_readable_log(tmp_path):
+    path, marker = tmp_path / "crash.mcap", tmp_path / "ready"
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(path), str(marker)])
+    try:
+        deadline = time.monotonic() + 60
+        while not marker.exists():
+            assert proc.poll() is None, "child writer died early"
+            assert time.monotonic() < deadline, "child writer never reached 60 ticks"
+            time.sleep(0.01)
+        proc.kill()  # SIGKILL: no cleanup, no close()
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == -9
+    data = read_log(path)
+    assert data.complete is False
+    assert len(data.t) >= 60 and data.summary is None
+    assert len(data.cmd_t) >= len(data.t) - 1
+    np.testing.assert_array_equal(data.q[:, 0], np.arange(len(data.t)))  # no gaps, in order
+    assert data.events and data.events[0]["kind"] == "tick"
+    info = log_info(path)
+    assert info["complete"] is False and info["counts"]["/state"] == len(data.t)
+
+
+def test_cut_anywhere_reads_a_prefix_or_raises_log_error(tmp_path, spec):
+    """Truncating a log at any byte gives the states before the cut, or LogError before /meta."""
+    path = tmp_path / "full.mcap"
+    write_run(path, spec, ticks=20, summary={"ok": True})
+    raw = path.read_bytes()
+    cut_path = tmp_path / "cut.mcap"
+    last = 0
+    cuts = sorted(set(range(0, len(raw), 37)) | set(range(len(raw) - 40, len(raw))))
+    for cut in cuts:
+        cut_path.write_bytes(raw[:cut])
+        try:
+            data = read_log(cut_path)
+        except LogError as e:
+            assert str(cut_path) in str(e)
+            assert last == 0, f"cut at {cut} raised after earlier cuts read fine"
+            continue
+        assert data.complete is False
+        assert len(data.t) >= last
+        last = len(data.t)
+        expected = [make_state(i, spec.n).q for i in range(last)]
+        np.testing.assert_array_equal(data.q, np.reshape(expected, (last, spec.n)))
+    assert last == 20
+    assert read_log(path).complete is True
+
+
+# ---------------------------------------------------------------------------------------------
+# non-finite numbers
+
+
+def test_nan_and_inf_are_written_as_null_and_read_as_nan(tmp_path, spec):
+    path = tmp_path / "nan.mcap"
+    q = np.zeros(spec.n)
+    q[3] = np.nan
+    dq = np.zeros(spec.n)
+    dq[0] = np.inf
+    with RunLog(path, spec) as log:
+        log.state(make_state(0, spec.n))
+        log.state(State(t=0.01, q=q, dq=dq, height=float("nan"),
+                        imu=Imu(quat=np.array([np.nan, 0, 0, 0]), gyro=np.zeros(3), accel=np.zeros(3))))
+        log.command(0.01, Command(q=q))
+        log.event(0.01, "nonfinite", values=q, where=float("-inf"))
+        log.state(make_state(2, spec.n))
+    data = read_log(path)
+    assert np.isnan(data.q[1, 3]) and np.isfinite(np.delete(data.q[1], 3)).all()
+    assert np.isnan(data.dq[1, 0]) and np.isnan(data.height[1]) and np.isnan(data.quat[1, 0])
+    assert np.isnan(data.cmd_q[0, 3])
+    assert data.events[0]["detail"]["where"] is None and data.events[0]["detail"]["values"][3] is None
+    assert data.effort is not None and np.isnan(data.effort[1]).all()  # the middle state had none
+    assert len(data.t) == 3 and data.complete
+    # the file is strict JSON: no NaN literal anywhere
+    with open(path, "rb") as fh:
+        for _, _, message in make_reader(fh).iter_messages():
+            json.loads(message.data, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+
+
+# ---------------------------------------------------------------------------------------------
+# errors
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "nope.mcap"
+    with pytest.raises(LogError, match="no such run log") as e:
+        read_log(path)
+    assert str(path) in str(e.value)
+
+
+@pytest.mark.parametrize("content", [b"", b"time,q0\n0.0,1.0\n", b"\x89MCAP0"])
+def test_not_an_mcap_file(tmp_path, content):
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(content)
+    with pytest.raises(LogError) as e:
+        read_log(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_mcap_file_that_is_not_a_felis_log(tmp_path):
+    path = tmp_path / "other.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema("x", "jsonschema", b"{}")
+        ch = w.register_channel("/chatter", "json", sid)
+        w.add_message(ch, log_time=0, data=b'{"a": 1}', publish_time=0)
+        w.finish()
+    with pytest.raises(LogError, match="not a felis run log") as e:
+        read_log(path)
+    assert str(path) in str(e.value)
+
+
+def test_directory_is_not_a_log(tmp_path):
+    with pytest.raises(LogError, match="not a file"):
+        read_log(tmp_path)
+
+
+def test_unwritable_target(tmp_path, spec):
+    blocker = tmp_path / "plain.txt"
+    blocker.write_text("a regular file")
+    target = blocker / "runs" / "run.mcap"
+    with pytest.raises(LogError) as e:
+        RunLog(target, spec)
+    assert str(target) in str(e.value)
+    with pytest.raises(LogError):
+        RunLog(tmp_path, spec)  # a directory
+
+
+def test_creates_parent_directories(tmp_path, spec):
+    path = tmp_path / "a" / "b" / "run.mcap"
+    write_run(path, spec, ticks=3)
+    assert read_log(path).counts["/state"] == 3
+
+
+# ---------------------------------------------------------------------------------------------
+# info and plot
+
+
+def test_log_info(tmp_path, spec):
+    path = tmp_path / "run.mcap"
+    write_run(path, spec, summary={"overruns": 2})
+    info = log_info(path)
+    json.dumps(info)  # JSON-able
+    assert info["path"] == str(path) and info["robot"] == "cat" and info["joints"] == list(spec.names)
+    assert info["complete"] is True
+    assert math.isclose(info["duration_s"], 1.99)
+    assert math.isclose(info["rate"], RATE)
+    assert info["counts"]["/state"] == 200 and info["counts"]["/command"] == 200
+    assert info["events"] == {"clamp": 1, "watchdog": 2}
+    assert info["summary"] == {"overruns": 2}
+    assert info["size_bytes"] == path.stat().st_size > 0
+
+
+def test_tilt():
+    half = np.radians(30) / 2
+    quats = np.array([[1, 0, 0, 0], [np.cos(half), np.sin(half), 0, 0], [np.cos(half), 0, np.sin(half), 0],
+                      [np.cos(half), 0, 0, np.sin(half)], [0, 1, 0, 0], [2, 0, 0, 0]], dtype=float)
+    np.testing.assert_allclose(tilt_deg(quats), [0, 30, 30, 0, 180, 0], atol=1e-9)
+
+
+def test_plot_log(tmp_path, spec):
+    path = tmp_path / "run.mcap"
+    write_run(path, spec, summary={"ok": True})
+    out = tmp_path / "plots" / "run.png"
+    assert plot_log(path, out) == out
+    png = out.read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    assert os.listdir(out.parent) == ["run.png"]  # no temp file left behind
+
+
+def test_plot_of_cut_and_bare_logs(tmp_path, spec):
+    path = tmp_path / "cut.mcap"
+    write_run(path, spec, ticks=40)
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) * 2 // 3])
+    assert plot_log(path, tmp_path / "cut.png").read_bytes()[:4] == b"\x89PNG"
+    bare = tmp_path / "bare.mcap"
+    RunLog(bare, spec).close()  # no states at all
+    assert plot_log(bare, tmp_path / "bare.png").stat().st_size > 0
+
+
+def test_plot_of_bad_log_raises_and_writes_nothing(tmp_path):
+    bad = tmp_path / "bad.mcap"
+    bad.write_text("not a log")
+    with pytest.raises(LogError, match="not an MCAP file"):
+        plot_log(bad, tmp_path / "out" / "bad.png")
+    assert not (tmp_path / "out").exists()
