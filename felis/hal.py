@@ -186,10 +186,13 @@ class RobotBase:
 
     def write(self, command: Command) -> Command:
         self._require(Lifecycle.ARMED, action="write")
-        q = np.asarray(command.q, dtype=float)
+        q = command.q
+        if not (isinstance(q, np.ndarray) and q.dtype == np.float64):
+            q = np.asarray(q, dtype=float)
+            command = command.replace(q=q)
         if q.shape != (self.spec.n,):
             raise ValueError(f"{self.spec.name}: command has {q.size} positions, robot has {self.spec.n} joints")
-        return self._guard(self._write, command.replace(q=q))
+        return self._guard(self._write, command)
 
     def advance(self, dt: float) -> None:
         self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="advance")

@@ -78,22 +78,26 @@ class SafetyLayer:
     def filter(self, command: Command) -> Command:
         last = self.last
         self.events = []
-        q = np.asarray(command.q, dtype=float)
-        dq_max = None if command.dq_max is None else np.asarray(command.dq_max, dtype=float)
-        if q.shape != last.q.shape or not np.all(np.isfinite(q)) or (
-                dq_max is not None and not np.all(np.isfinite(dq_max))):
+        q = command.q if isinstance(command.q, np.ndarray) else np.asarray(command.q, dtype=float)
+        dq_max = command.dq_max
+        if dq_max is not None:
+            dq_max = np.asarray(dq_max, dtype=float)
+        if (q.shape != last.q.shape or not np.isfinite(q).all()
+                or (dq_max is not None and not np.isfinite(dq_max).all())):
             self.counters.nonfinite_held += 1
-            bad = [int(i) for i in np.flatnonzero(~np.isfinite(q))] if q.shape == last.q.shape else []
+            bad = np.flatnonzero(~np.isfinite(q)).tolist() if q.shape == last.q.shape else []
             self.events.append(("nonfinite_held", {"joints": bad, "shape": list(q.shape)}))
             return last
-        clamped = np.clip(q, self.lower, self.upper)
-        if np.any(clamped != q):
+        clamped = np.minimum(np.maximum(q, self.lower), self.upper)
+        if (clamped != q).any():
             self.counters.limit_clamps += 1
             self.events.append(("limit_clamp", {"joints": np.flatnonzero(clamped != q).tolist()}))
-        stepped = np.clip(clamped, last.q - self.max_step, last.q + self.max_step)
-        if np.any(stepped != clamped):
+        lo = last.q - self.max_step
+        hi = last.q + self.max_step
+        stepped = np.minimum(np.maximum(clamped, lo), hi)
+        if (stepped != clamped).any():
             self.counters.step_clamps += 1
-        return command.replace(q=stepped, dq_max=dq_max)
+        return Command(q=stepped, dq_max=dq_max, torque=command.torque)
 
     def sent(self, command: Command) -> None:
         """Record what the robot actually sent: the reference for the next step limit and hold."""

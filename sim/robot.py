@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 
 from felis.errors import FelisError, SimulationError
-from felis.hal import Command, Faults, Imu, RobotBase, State
+from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State
 from felis.servos import servo_model
 from felis.spec import RobotSpec
 from felis.sim.servo import ServoParams, quantize_position, quantize_velocity, servo_params
@@ -100,6 +100,9 @@ class MujocoRobot(RobotBase):
             self._jid[i], self._act[i] = jid, aid
             self._qadr[i], self._dadr[i] = m.jnt_qposadr[jid], m.jnt_dofadr[jid]
         self._m_per_rad = np.array([j.m_per_rad for j in spec.joints])
+        self._lower, self._upper = spec.lower, spec.upper
+        self._bad = [d_w for d_w in (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
+                                     mujoco.mjtWarning.mjWARN_BADQACC)]
         self.servo = {j.name: self._servo_override.get(j.name) or servo_params(servo_model(j.servo),
                                                                                m_per_rad=j.m_per_rad)
                       for j in spec.joints}
@@ -117,12 +120,17 @@ class MujocoRobot(RobotBase):
         self._sensors(m)
         self._faults = Faults.none(n)
         self._set_torque(np.zeros(n, dtype=bool))
-        mujoco.mj_resetData(m, self.data)
+        self._reset_data()
+
+    def _reset_data(self) -> None:
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
         if m.nkey > 0:
-            mujoco.mj_resetDataKeyframe(m, self.data, 0)
-        self._goal = self.data.qpos[self._qadr].copy()
-        self.data.ctrl[self._act] = self._goal
-        mujoco.mj_forward(m, self.data)
+            mujoco.mj_resetDataKeyframe(m, d, 0)
+        self._goal = d.qpos[self._qadr].copy()
+        self._dq_max = None
+        d.ctrl[self._act] = self._goal
+        mujoco.mj_forward(m, d)
 
     def _sensor_for(self, m, stype, objtype, objid) -> int | None:
         for s in range(m.nsensor):
@@ -209,7 +217,7 @@ class MujocoRobot(RobotBase):
                      height=height, faults=self._faults)
 
     def _write(self, command: Command) -> Command:
-        q = np.clip(command.q, self.spec.lower, self.spec.upper)
+        q = np.minimum(np.maximum(command.q, self._lower), self._upper)
         torque = command.torque
         if torque is not None:
             torque = np.asarray(torque, dtype=bool)
@@ -223,7 +231,7 @@ class MujocoRobot(RobotBase):
         self._dq_max = None if command.dq_max is None else np.abs(np.asarray(command.dq_max, dtype=float))
         if self._dq_max is None:
             self.data.ctrl[self._act] = q
-        return command.replace(q=q, torque=torque)
+        return Command(q=q, dq_max=command.dq_max, torque=torque)
 
     def _advance(self, dt: float) -> None:
         m, d = self.model, self.data
@@ -238,13 +246,23 @@ class MujocoRobot(RobotBase):
             for _ in range(nstep):
                 mujoco.mj_step(m, d)
                 self.substep_hook(m, d)
-        if not np.isfinite(d.qacc).all() or d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0:
-            raise SimulationError(f"{self.spec.name}: physics diverged at t={d.time:.3f} s (bad accelerations)")
+        w = d.warning
+        if w[self._bad[0]].number or w[self._bad[1]].number or w[self._bad[2]].number:
+            raise SimulationError(f"{self.spec.name}: physics diverged (MuJoCo flagged non-finite or huge "
+                                  "state and reset); the episode cannot continue")
 
     def _close(self) -> None:
         self.model = self.data = None
 
     # ------------------------------------------------------------------ sim-only helpers
+    def reset(self) -> None:
+        """Back to the model's initial state (keyframe 0 if any), time 0, goals at the present pose.
+
+        Keeps the lifecycle state, so episodes can reuse one compiled model.
+        """
+        self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="reset")
+        self._reset_data()
+
     def body_id(self, name: str) -> int:
         bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)
         if bid < 0:
