@@ -142,6 +142,7 @@ def run_loop(
     deadline = wall0
     stopped = "duration"
     ticks = 0
+    finished = False  # the loop ended by its own rules, not by an exception
     try:
         for k in range(n_ticks):
             t0 = time.perf_counter()
@@ -184,11 +185,12 @@ def run_loop(
             if dog.tick(overrun, enforce=clock == "wall"):
                 stopped = f"watchdog: {dog.tripped}"
                 break
+        finished = True
     except KeyboardInterrupt:
         stopped = "interrupted"
     finally:
-        if stopped.startswith("watchdog") or not keep_armed or stopped == "interrupted":
-            robot.disarm()
+        if not (finished and keep_armed and stopped in ("duration", "until")):
+            robot.disarm()  # torque off: on exceptions, interrupts and watchdog trips, whatever keep_armed says
     if stopped.startswith("watchdog") and log is not None:
         log.event(state.t, "watchdog", reason=dog.tripped)
     return LoopReport(

@@ -1,0 +1,219 @@
+"""Control loop and safety layer on the real MuJoCo cat: clamps, non-finite hold, watchdog, timing."""
+
+import time
+
+import numpy as np
+import pytest
+
+from felis.controllers import PoseController
+from felis.errors import CommError, LifecycleError, ParameterError
+from felis.hal import Command, Lifecycle
+from felis.loop import run_loop
+from felis.safety import SafetyConfig, SafetyLayer
+from felis.sim import MujocoRobot
+from felis.spec import load_spec
+
+CAT = load_spec("cat")
+
+
+@pytest.fixture
+def cat():
+    with MujocoRobot(CAT) as robot:
+        yield robot
+
+
+class Scripted:
+    """Controller returning a scripted target per tick (the last one repeats)."""
+
+    name = "scripted"
+
+    def __init__(self, targets):
+        self.targets = targets
+        self.k = 0
+
+    def reset(self, spec, state):
+        self.k = 0
+
+    def __call__(self, state):
+        q = self.targets[min(self.k, len(self.targets) - 1)]
+        self.k += 1
+        return Command(q=np.array(q, dtype=float))
+
+
+class Recorder:
+    def __init__(self):
+        self.sent = []
+
+    def __call__(self, state, command):
+        self.sent.append(command.q.copy())
+
+
+# ------------------------------------------------------------------------- safety layer alone
+def test_soft_limits_and_max_step():
+    layer = SafetyLayer(CAT, dt=0.01, config=SafetyConfig(soft_margin=0.1))
+    layer.reset(np.zeros(12))
+    far = np.full(12, 5.0)
+    out = layer.filter(Command(q=far))
+    step = CAT.max_velocity * 0.01
+    assert out.q == pytest.approx(step)  # rate-limited from the present position
+    assert layer.counters.limit_clamps == 1 and layer.counters.step_clamps == 1
+    q = out.q
+    for _ in range(500):
+        layer.sent(Command(q=q))
+        q = layer.filter(Command(q=far)).q
+    assert q == pytest.approx(CAT.upper - 0.1)  # converges onto the soft limit, never past it
+
+
+def test_nonfinite_holds_last_good_and_counts():
+    layer = SafetyLayer(CAT, dt=0.01)
+    layer.reset(np.zeros(12))
+    good = layer.filter(Command(q=np.full(12, 0.05)))
+    layer.sent(good)
+    for bad in (np.full(12, np.nan), np.r_[np.zeros(11), np.inf], np.zeros(5)):
+        assert layer.filter(Command(q=bad)) is good
+    bad_speed = Command(q=np.zeros(12), dq_max=np.full(12, np.nan))
+    assert layer.filter(bad_speed) is good
+    assert layer.counters.nonfinite_held == 4
+    assert layer.events[0][0] == "nonfinite_held"
+
+
+def test_reset_clamps_present_into_soft_range():
+    layer = SafetyLayer(CAT, dt=0.01, config=SafetyConfig(soft_margin=0.2))
+    layer.reset(CAT.upper)
+    assert layer.last.q == pytest.approx(CAT.upper - 0.2)
+
+
+# ------------------------------------------------------------------------- in the loop
+def test_loop_clamps_what_reaches_the_robot(cat):
+    rec = Recorder()
+    report = run_loop(cat, Scripted([np.full(12, 9.0)]), duration=0.5, monitors=[rec])
+    sent = np.array(rec.sent)
+    assert np.all(sent <= CAT.upper + 1e-12) and np.all(sent >= CAT.lower - 1e-12)
+    assert np.all(np.abs(np.diff(sent, axis=0)) <= CAT.max_velocity * 0.01 + 1e-12)
+    assert report.safety["limit_clamps"] == 50 and report.safety["step_clamps"] > 0
+    assert sent[-1] == pytest.approx(CAT.upper)
+
+
+def test_loop_nonfinite_command_holds_and_counts(cat):
+    targets = [np.full(12, 0.02 * k) for k in range(10)]
+    targets[4] = np.full(12, np.nan)
+    targets[5] = np.r_[np.zeros(11), -np.inf]
+    rec = Recorder()
+    report = run_loop(cat, Scripted(targets), duration=0.1, monitors=[rec])
+    assert report.ok and report.ticks == 10
+    assert report.safety["nonfinite_held"] == 2
+    assert np.array_equal(rec.sent[4], rec.sent[3]) and np.array_equal(rec.sent[5], rec.sent[3])
+    assert np.all(np.isfinite(np.array(rec.sent)))
+
+
+class FlakyCat(MujocoRobot):
+    """The MuJoCo cat whose reads fail on chosen ticks (a bus losing replies)."""
+
+    def __init__(self, fail_ticks):
+        super().__init__(CAT)
+        self.fail_ticks, self.reads = set(fail_ticks), 0
+
+    def _read(self):
+        self.reads += 1
+        if self.reads in self.fail_ticks:
+            raise CommError(f"no status packet from servo 5 (read {self.reads})")
+        return super()._read()
+
+
+def test_watchdog_tolerates_a_few_read_failures():
+    with FlakyCat(fail_ticks=[10, 11, 12, 30]) as robot:
+        report = run_loop(robot, PoseController("stand"), duration=0.5)
+    assert report.ok and report.ticks == 50 and report.read_failures == 4
+
+
+def test_watchdog_disarms_after_too_many_read_failures():
+    robot = FlakyCat(fail_ticks=range(20, 40))
+    with robot:
+        report = run_loop(robot, PoseController("stand"), duration=1.0,
+                          safety=SafetyConfig(read_fail_tolerance=3), keep_armed=True)
+        assert not report.ok and report.stopped.startswith("watchdog: 4 consecutive read failures")
+        assert "no status packet" in report.stopped
+        assert robot.lifecycle is Lifecycle.CONNECTED  # disarmed despite keep_armed
+        assert np.all(robot.model.actuator_gainprm[:, 0] == 0)  # torque off
+        assert report.ticks < 25
+
+
+def test_watchdog_disarms_on_overruns_with_wall_clock(cat):
+    class Slow(PoseController):
+        def __call__(self, state):
+            time.sleep(0.012)
+            return super().__call__(state)
+
+    report = run_loop(cat, Slow("hold"), duration=1.0, rate_hz=100, clock="wall",
+                      safety=SafetyConfig(overrun_tolerance=5))
+    assert report.stopped == "watchdog: 6 consecutive loop overruns"
+    assert report.ticks == 6 and report.timing.overruns == 6
+    assert cat.lifecycle is Lifecycle.CONNECTED
+
+
+def test_wall_clock_paces_real_time(cat):
+    report = run_loop(cat, PoseController("hold"), duration=0.3, rate_hz=50, clock="wall")
+    assert report.ok and report.ticks == 15
+    assert 0.28 <= report.wall_time_s <= 0.45
+    assert report.timing.overruns == 0
+
+
+def test_controller_exception_disarms_and_propagates(cat):
+    class Broken(PoseController):
+        def __call__(self, state):
+            if state.t > 0.05:
+                raise RuntimeError("controller bug")
+            return super().__call__(state)
+
+    with pytest.raises(RuntimeError, match="controller bug"):
+        run_loop(cat, Broken("hold"), duration=1.0, keep_armed=True)
+    assert cat.lifecycle is Lifecycle.CONNECTED
+    assert np.all(cat.model.actuator_gainprm[:, 0] == 0)
+
+
+def test_timing_report(cat):
+    report = run_loop(cat, PoseController("stand"), duration=1.0)
+    t = report.timing
+    assert report.ticks == 100 and report.sim_time_s == pytest.approx(1.0)
+    assert 0 < t.mean_ms <= t.p99_ms <= t.max_ms and t.period_ms == 10.0
+    d = report.as_dict()
+    assert d["ok"] and d["timing"]["overruns"] == t.overruns
+
+
+@pytest.mark.parametrize("kw", [{"duration": 0}, {"duration": float("nan")}, {"duration": 1, "rate_hz": 0},
+                                {"duration": 1, "clock": "lunar"}])
+def test_bad_loop_parameters(cat, kw):
+    with pytest.raises(ParameterError):
+        run_loop(cat, PoseController("hold"), **kw)
+
+
+def test_lifecycle_rules(cat):
+    with pytest.raises(LifecycleError, match="cannot write while connected"):
+        cat.write(Command(q=np.zeros(12)))
+    cat.arm()
+    with pytest.raises(LifecycleError, match="cannot arm while armed"):
+        cat.arm()
+    with pytest.raises(ValueError, match="3 positions"):
+        cat.write(Command(q=np.zeros(3)))
+    cat.close()
+    assert cat.lifecycle is Lifecycle.DISCONNECTED
+    with pytest.raises(LifecycleError):
+        cat.read()
+
+
+def test_arming_does_not_jump(cat):
+    from felis.sim.scenarios import set_pose
+
+    pose = CAT.pose("sit")
+    set_pose(cat, pose)
+    cat.arm()
+    assert cat.data.ctrl == pytest.approx(cat.data.qpos[cat._qadr])  # goal = present
+
+
+def test_exception_in_with_block_turns_torque_off():
+    robot = MujocoRobot(CAT)
+    with pytest.raises(KeyError):
+        with robot:
+            robot.arm()
+            raise KeyError("operator code failed")
+    assert robot.lifecycle is Lifecycle.DISCONNECTED
