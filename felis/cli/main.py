@@ -92,8 +92,9 @@ def _print_result(res, console) -> None:
     t = r.timing
     console.print(f"[bold]{r.robot}[/] · controller {r.controller} · {r.ticks} ticks at {r.rate_hz:g} Hz "
                   f"({r.sim_time_s:.2f} s simulated in {r.wall_time_s:.2f} s) · stopped: {r.stopped}")
-    console.print(f"loop: compute mean {t.mean_ms:.3f} ms, p99 {t.p99_ms:.3f} ms, max {t.max_ms:.3f} ms, "
-                  f"{t.overruns} overruns of the {t.period_ms:g} ms period; safety {r.safety}")
+    console.print(f"loop: control path mean {t.mean_ms:.3f} ms, p99 {t.p99_ms:.3f} ms, max {t.max_ms:.3f} ms; "
+                  f"{t.overruns} overruns of the {t.period_ms:g} ms period; monitors+log {t.monitors_mean_ms:.2f} "
+                  f"ms/tick; safety: {r.safety}")
     if res.drop is not None:
         console.print(f"drop: {res.drop.height:g} m, roll {res.drop.roll:g}° pitch {res.drop.pitch:g}° "
                       f"yaw {res.drop.yaw:g}° (free fall √(2h/g) = {res.drop.fall_time:.3f} s)")
@@ -335,6 +336,7 @@ def _missing(parser: argparse.ArgumentParser) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]  # accepted anywhere, e.g. after the sub-command
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
