@@ -15,6 +15,7 @@ demo: $(STAMP)
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(VENV)/bin/felis demo
 
 test: $(STAMP)
+	$(VENV)/bin/ruff check --quiet .
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m pytest -q
 
 test-slow: $(STAMP)

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from felis.controllers.pose import PoseController
+
 from felis.errors import ParameterError
 from felis.hal import Controller
-from felis.controllers.pose import PoseController
 
 CONTROLLERS: dict[str, Callable[[], Controller]] = {
     "hold": lambda: PoseController("hold"),

@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from felis.errors import LogError
+from felis.errors import LogError, ParameterError
+from felis.files import default_mode, prepare_parent
 from felis.runlog import LogData, read_log
 
 
@@ -40,17 +41,20 @@ def plot_log(path: str | Path, out: str | Path) -> Path:
 
     Raises LogError when the log cannot be read or the image cannot be written.
     """
-    data = read_log(path)
     out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise ParameterError(f"{out}: plot output must end in .png")
+    data = read_log(path)
     fig = _figure(data)
+    prepare_parent(out, "plot", LogError)
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     except OSError as e:
         raise LogError(f"cannot write plot {out}: {e.strerror or e}") from None
     try:
         with os.fdopen(fd, "wb") as fh:
             fig.savefig(fh, format="png", dpi=110)
+        default_mode(tmp)
         os.replace(tmp, out)
     except OSError as e:
         _remove(tmp)

@@ -44,6 +44,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from felis.errors import LogError
+from felis.files import prepare_parent
 from felis.hal import Command, State
 from felis.spec import RobotSpec
 
@@ -175,8 +176,8 @@ class RunLog:
         self._closed = False
         self._last_ns = 0
         self._encoder = json.JSONEncoder(allow_nan=False, separators=(",", ":"), default=_default)
+        prepare_parent(self.path, "run log", LogError)
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
         except OSError as e:
             raise LogError(f"cannot write run log {self.path}: {e.strerror or e}") from None

@@ -101,7 +101,7 @@ class RobotSpec:
         try:
             return self.names.index(joint)
         except ValueError:
-            raise KeyError(f"robot {self.name!r} has no joint {joint!r}; joints: {', '.join(self.names)}")
+            raise KeyError(f"robot {self.name!r} has no joint {joint!r}; joints: {', '.join(self.names)}") from None
 
     def indices(self, group_or_joints: str | list[str] | tuple[str, ...]) -> np.ndarray:
         """Indices of a group (by name) or of a list of joint names."""

@@ -4,6 +4,6 @@ Physics is kept apart from tasks: this package steps and measures a model; contr
 import it. ``felis.sim.models`` holds the MJCF files named by the robot descriptions.
 """
 
-from felis.sim.robot import MujocoRobot, ModelMismatch
+from felis.sim.robot import ModelMismatch, MujocoRobot
 
 __all__ = ["ModelMismatch", "MujocoRobot"]

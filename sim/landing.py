@@ -16,7 +16,6 @@ from dataclasses import asdict, dataclass
 
 import mujoco
 import numpy as np
-
 from felis.sim.robot import MujocoRobot
 from felis.sim.scenarios import quat_euler
 
@@ -87,7 +86,14 @@ class Landing:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
     def summary(self) -> str:
-        verdict = "on its feet" if self.on_feet else ("on its back/side" if self.torso_contact else "not upright")
+        if self.on_feet:
+            verdict = "on its feet"
+        elif self.tilt_deg > 135:
+            verdict = "on its back"
+        elif self.tilt_deg > UPRIGHT_TILT_DEG:
+            verdict = "on its side"
+        else:
+            verdict = "upright but not on its feet"
         impact = (f"impact {self.impact_speed_ms:.2f} m/s at t={self.first_contact_s:.3f} s, "
                   if self.impact_speed_ms is not None else "")
         return (f"landed {verdict}: tilt {self.tilt_deg:.0f}°, roll {self.roll_deg:.0f}° pitch "

@@ -17,10 +17,11 @@ from pathlib import Path
 import imageio.v2 as imageio
 import mujoco
 import numpy as np
+from felis.sim.robot import MujocoRobot
 
 from felis.errors import FelisError, ParameterError
+from felis.files import prepare_parent
 from felis.hal import Command, State
-from felis.sim.robot import MujocoRobot
 
 FORMATS = (".mp4", ".gif", ".png")
 
@@ -29,7 +30,7 @@ class RenderError(FelisError):
     """Offscreen rendering is unavailable (no OpenGL context)."""
 
 
-def check_target(path: str | Path) -> Path:
+def check_video_path(path: str | Path) -> Path:
     path = Path(path)
     if path.suffix.lower() not in FORMATS:
         raise ParameterError(f"{path}: output must end in {', '.join(FORMATS)}")
@@ -41,7 +42,7 @@ class VideoRecorder:
 
     def __init__(self, robot: MujocoRobot, path: str | Path, fps: float = 30.0, width: int = 640,
                  height: int = 480, camera: str = "track", strip: int = 6):
-        self.path = check_target(path)
+        self.path = check_video_path(path)
         if not 1 <= fps <= 120:
             raise ParameterError(f"fps must be within 1…120, got {fps}")
         self.robot, self.fps, self.strip = robot, float(fps), strip
@@ -55,7 +56,7 @@ class VideoRecorder:
         self.frames: list[np.ndarray] = []  # kept only for PNG strips
         self.count = 0
         self._next = None
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        prepare_parent(self.path, "video")
         self._tmp = self.path.with_name(f".{self.path.stem}.part{self.path.suffix}")
         self._writer = None
         if self.path.suffix.lower() in (".mp4", ".gif"):

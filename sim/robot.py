@@ -19,12 +19,12 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+from felis.sim.servo import ServoParams, quantize_position, quantize_velocity, servo_params
 
 from felis.errors import FelisError, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State
 from felis.servos import servo_model
 from felis.spec import RobotSpec
-from felis.sim.servo import ServoParams, quantize_position, quantize_velocity, servo_params
 
 MODELS_DIR = resources.files("felis.sim") / "models"
 TOUCH_THRESHOLD_N = 1e-3
@@ -197,7 +197,7 @@ class MujocoRobot(RobotBase):
 
     # ------------------------------------------------------------------ I/O
     def _read(self) -> State:
-        m, d = self.model, self.data
+        d = self.data
         q = d.qpos[self._qadr]
         dq = d.qvel[self._dadr]
         if self.quantize:

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+from felis.sim.robot import MujocoRobot
 
 from felis.errors import ParameterError
-from felis.sim.robot import MujocoRobot
 
 MAX_DROP_HEIGHT = 20.0  # m
 MAX_IMPULSE = 50.0  # N·s
@@ -96,10 +96,10 @@ def drop(robot: MujocoRobot, height: float, roll: float = 0.0, pitch: float = 0.
     h = _finite("height", height)
     angles = [_finite(n, a) for n, a in (("roll", roll), ("pitch", pitch), ("yaw", yaw))]
     if not 0.0 < h <= MAX_DROP_HEIGHT:
-        raise ParameterError(f"drop height must be within 0…{MAX_DROP_HEIGHT} m (exclusive of 0), got {h}")
+        raise ParameterError(f"drop height must be above 0 and at most {MAX_DROP_HEIGHT:g} m, got {h:g}")
     for n, a in zip(("roll", "pitch", "yaw"), angles, strict=True):
         if abs(a) > 360:
-            raise ParameterError(f"{n} must be within ±360 degrees, got {a}")
+            raise ParameterError(f"drop {n} must be within ±360 degrees, got {a:g}")
     m, d = robot.model, robot.data
     adr = robot.free_joint
     if adr is None:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from felis.controllers import make_controller
 from felis.errors import ParameterError
+from felis.files import check_target
 from felis.loop import LoopReport, run_loop
 from felis.spec import load_spec
 
@@ -55,17 +56,17 @@ class EpisodeResult:
 def _check(ep: Episode) -> None:
     if not (ep.duration > 0 and ep.duration <= 3600):
         raise ParameterError(f"duration must be within 0…3600 s, got {ep.duration}")
-    from felis.sim.render import check_target
+    from felis.sim.render import check_video_path
 
     if ep.video is not None:
-        check_target(ep.video)
+        check_video_path(ep.video)
     if ep.plot is not None and Path(ep.plot).suffix.lower() != ".png":
         raise ParameterError(f"{ep.plot}: plot output must end in .png")
     if ep.log is not None and Path(ep.log).suffix.lower() != ".mcap":
         raise ParameterError(f"{ep.log}: log file must end in .mcap")
-    for p in (ep.video, ep.plot, ep.log):
-        if p is not None and Path(p).is_dir():
-            raise ParameterError(f"{p} is a directory; give a file name")
+    for p, what in ((ep.video, "video"), (ep.plot, "plot"), (ep.log, "run log")):
+        if p is not None:
+            check_target(Path(p), what, ParameterError)
 
 
 def run_episode(ep: Episode) -> EpisodeResult:
@@ -81,26 +82,22 @@ def run_episode(ep: Episode) -> EpisodeResult:
     with robot:
         info = drop(robot, *ep.drop) if ep.drop is not None else None
         recorder = ImpactRecorder(robot).attach() if info is not None else None
-        monitors = []
-        video = None
-        if ep.video is not None:
-            from felis.sim.render import VideoRecorder
-
-            video = VideoRecorder(robot, ep.video, fps=ep.fps, width=ep.size[0], height=ep.size[1])
-            monitors.append(video)
-        if ep.progress is not None:
-            monitors.append(ep.progress)
-        log = None
-        if ep.log is not None:
-            from felis.runlog import RunLog
-
-            meta = {"controller": ep.controller, "backend": "sim", **ep.meta}
-            if info is not None:
-                meta["drop"] = {"height_m": info.height, "roll_deg": info.roll, "pitch_deg": info.pitch,
-                                "yaw_deg": info.yaw}
-            log = RunLog(ep.log, spec, meta)
-        landing = None
+        monitors = [] if ep.progress is None else [ep.progress]
+        video = log = landing = None
         try:
+            if ep.video is not None:
+                from felis.sim.render import VideoRecorder
+
+                video = VideoRecorder(robot, ep.video, fps=ep.fps, width=ep.size[0], height=ep.size[1])
+                monitors.insert(0, video)
+            if ep.log is not None:
+                from felis.runlog import RunLog
+
+                meta = {"controller": ep.controller, "backend": "sim", **ep.meta}
+                if info is not None:
+                    meta["drop"] = {"height_m": info.height, "roll_deg": info.roll, "pitch_deg": info.pitch,
+                                    "yaw_deg": info.yaw}
+                log = RunLog(ep.log, spec, meta)
             report = run_loop(robot, controller, duration=ep.duration, clock=ep.clock, log=log,
                               monitors=monitors)
             if info is not None:

@@ -55,7 +55,7 @@ def _size(text: str) -> tuple[int, int]:
 def _console():
     from rich.console import Console
 
-    return Console(highlight=False)
+    return Console(highlight=False, soft_wrap=True)
 
 
 def _print_json(obj) -> None:
