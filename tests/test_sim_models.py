@@ -1,6 +1,6 @@
 """Checks of the MuJoCo models sim/models/cat.xml and sim/models/arm.xml.
 
-Uses only mujoco and numpy (no felis imports), so the models can be checked on their own.
+Uses mujoco and numpy directly (felis only for the lowest-point helper), so the models are checked on their own.
 """
 
 from pathlib import Path
@@ -260,32 +260,11 @@ def test_arm_holds_pose_against_gravity(arm):
 # cat dynamics
 
 
-def _cat_geoms(model):
-    return [
-        g
-        for g in range(model.ngeom)
-        if model.geom_bodyid[g] != 0 and (model.geom_contype[g] or model.geom_conaffinity[g])
-    ]
+def _lowest(model, data):
+    """Lowest point of the cat's collision geometry (the same function the drop scenario uses)."""
+    from felis.sim.scenarios import lowest_point
 
-
-def lowest_point(model, data, geoms):
-    """Lowest world z over the given (sphere, capsule, box) geoms."""
-    low = np.inf
-    for g in geoms:
-        t = model.geom_type[g]
-        size = model.geom_size[g]
-        pos = data.geom_xpos[g]
-        mat = data.geom_xmat[g].reshape(3, 3)
-        if t == mujoco.mjtGeom.mjGEOM_SPHERE:
-            z = pos[2] - size[0]
-        elif t == mujoco.mjtGeom.mjGEOM_CAPSULE:
-            z = pos[2] - abs(mat[2, 2]) * size[1] - size[0]
-        elif t == mujoco.mjtGeom.mjGEOM_BOX:
-            z = pos[2] - np.abs(mat[2, :]) @ size[:3]
-        else:
-            z = pos[2] - model.geom_rbound[g]
-        low = min(low, z)
-    return low
+    return lowest_point(model, data, root=1)  # body 1 = upper_body, the cat's root
 
 
 def _quat(axis, angle):
@@ -307,19 +286,18 @@ DROPS = {
 def test_cat_hard_landing(cat, orientation):
     """Dropped from 3 m (7.7 m/s impact) with the servos holding 0: the simulation stays sane."""
     data = mujoco.MjData(cat)
-    geoms = _cat_geoms(cat)
     data.qpos[3:7] = DROPS[orientation]
     mujoco.mj_kinematics(cat, data)
-    data.qpos[2] += 3.0 - lowest_point(cat, data, geoms)
+    data.qpos[2] += 3.0 - _lowest(cat, data)
     mujoco.mj_forward(cat, data)
-    assert lowest_point(cat, data, geoms) == pytest.approx(3.0)
+    assert _lowest(cat, data) == pytest.approx(3.0)
     data.ctrl[:] = 0.0
 
     lowest, max_qvel, max_pen, landed = np.inf, 0.0, 0.0, False
     for _ in range(2000):
         mujoco.mj_step(cat, data)
         assert np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel))
-        lowest = min(lowest, lowest_point(cat, data, geoms))
+        lowest = min(lowest, _lowest(cat, data))
         max_qvel = max(max_qvel, np.abs(data.qvel).max())
         if data.ncon:
             landed = True
@@ -349,9 +327,8 @@ def test_cat_hard_landing(cat, orientation):
 
 def test_cat_stands(cat):
     data = mujoco.MjData(cat)
-    geoms = _cat_geoms(cat)
     mujoco.mj_forward(cat, data)
-    data.qpos[2] += 0.002 - lowest_point(cat, data, geoms)  # feet 2 mm above the floor
+    data.qpos[2] += 0.002 - _lowest(cat, data)  # feet 2 mm above the floor
     data.ctrl[:] = 0.0
     for _ in range(2000):
         mujoco.mj_step(cat, data)
