@@ -154,9 +154,13 @@ class RobotBase:
         try:
             return fn(*args)
         except Exception:
-            self._life = Lifecycle.ERROR
-            self._safe_disarm()
+            self._fail()
             raise
+
+    def _fail(self) -> None:
+        """A backend call failed: ERROR state, torque off."""
+        self._life = Lifecycle.ERROR
+        self._safe_disarm()
 
     def _safe_disarm(self) -> None:
         try:
@@ -181,22 +185,33 @@ class RobotBase:
                 self._life = Lifecycle.CONNECTED
 
     def read(self) -> State:
-        self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="read")
+        if self._life is not Lifecycle.ARMED:
+            self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="read")
         return self._read()
 
     def write(self, command: Command) -> Command:
-        self._require(Lifecycle.ARMED, action="write")
+        if self._life is not Lifecycle.ARMED:
+            self._require(Lifecycle.ARMED, action="write")
         q = command.q
         if not (isinstance(q, np.ndarray) and q.dtype == np.float64):
             q = np.asarray(q, dtype=float)
             command = command.replace(q=q)
         if q.shape != (self.spec.n,):
             raise ValueError(f"{self.spec.name}: command has {q.size} positions, robot has {self.spec.n} joints")
-        return self._guard(self._write, command)
+        try:
+            return self._write(command)
+        except Exception:
+            self._fail()
+            raise
 
     def advance(self, dt: float) -> None:
-        self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="advance")
-        self._guard(self._advance, dt)
+        if self._life is not Lifecycle.ARMED:
+            self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="advance")
+        try:
+            self._advance(dt)
+        except Exception:
+            self._fail()
+            raise
 
     def close(self) -> None:
         if self._life is Lifecycle.DISCONNECTED:

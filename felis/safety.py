@@ -15,12 +15,16 @@ trips, and the loop disarms the robot (torque off) and stops.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from felis.hal import Command
 from felis.spec import RobotSpec
+
+_sum = np.add.reduce
+_any = np.logical_or.reduce
 
 
 @dataclass(frozen=True)
@@ -82,22 +86,26 @@ class SafetyLayer:
         dq_max = command.dq_max
         if dq_max is not None:
             dq_max = np.asarray(dq_max, dtype=float)
-        if (q.shape != last.q.shape or not np.isfinite(q).all()
-                or (dq_max is not None and not np.isfinite(dq_max).all())):
+        # a sum is finite iff every term is (ufunc reduce: no Python-level wrapper on the hot path)
+        if (q.shape != last.q.shape or not math.isfinite(_sum(q))
+                or (dq_max is not None and not math.isfinite(_sum(dq_max)))):
             self.counters.nonfinite_held += 1
             bad = np.flatnonzero(~np.isfinite(q)).tolist() if q.shape == last.q.shape else []
             self.events.append(("nonfinite_held", {"joints": bad, "shape": list(q.shape)}))
             return last
-        clamped = np.minimum(np.maximum(q, self.lower), self.upper)
-        if (clamped != q).any():
-            self.counters.limit_clamps += 1
-            self.events.append(("limit_clamp", {"joints": np.flatnonzero(clamped != q).tolist()}))
-        lo = last.q - self.max_step
-        hi = last.q + self.max_step
-        stepped = np.minimum(np.maximum(clamped, lo), hi)
-        if (stepped != clamped).any():
-            self.counters.step_clamps += 1
-        return Command(q=stepped, dq_max=dq_max, torque=command.torque)
+        # one clamp to [max(lower, last − step), min(upper, last + step)]; attribute it only when it bites
+        lo = np.maximum(self.lower, last.q - self.max_step)
+        hi = np.minimum(self.upper, last.q + self.max_step)
+        out = np.minimum(np.maximum(q, lo), hi)
+        if _any(out != q):
+            beyond = (q < self.lower) | (q > self.upper)
+            if _any(beyond):
+                self.counters.limit_clamps += 1
+                self.events.append(("limit_clamp", {"joints": np.flatnonzero(beyond).tolist()}))
+            in_range = np.minimum(np.maximum(q, self.lower), self.upper)
+            if _any(out != in_range):
+                self.counters.step_clamps += 1
+        return Command(q=out, dq_max=dq_max, torque=command.torque)
 
     def sent(self, command: Command) -> None:
         """Record what the robot actually sent: the reference for the next step limit and hold."""

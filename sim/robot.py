@@ -19,11 +19,11 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from felis.sim.servo import ServoParams, quantize_position, quantize_velocity, servo_params
+from felis.sim.servo import ServoParams, servo_params
 
 from felis.errors import FelisError, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State
-from felis.servos import servo_model
+from felis.servos import RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, servo_model
 from felis.spec import RobotSpec
 
 MODELS_DIR = resources.files("felis.sim") / "models"
@@ -101,8 +101,9 @@ class MujocoRobot(RobotBase):
             self._qadr[i], self._dadr[i] = m.jnt_qposadr[jid], m.jnt_dofadr[jid]
         self._m_per_rad = np.array([j.m_per_rad for j in spec.joints])
         self._lower, self._upper = spec.lower, spec.upper
-        self._bad = [d_w for d_w in (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
-                                     mujoco.mjtWarning.mjWARN_BADQACC)]
+        self._qstep = RAD_PER_TICK * self._m_per_rad  # quantisation steps (see felis.sim.servo)
+        self._vstep = RAD_S_PER_VELOCITY_UNIT * self._m_per_rad
+        self._inv_qstep, self._inv_vstep = 1.0 / self._qstep, 1.0 / self._vstep
         self.servo = {j.name: self._servo_override.get(j.name) or servo_params(servo_model(j.servo),
                                                                                m_per_rad=j.m_per_rad)
                       for j in spec.joints}
@@ -118,6 +119,8 @@ class MujocoRobot(RobotBase):
             m.dof_armature[dof] = p.armature
             m.dof_frictionloss[dof] = p.frictionloss
         self._sensors(m)
+        W = mujoco.mjtWarning
+        self._divergence = [self.data.warning[w] for w in (W.mjWARN_BADQPOS, W.mjWARN_BADQVEL, W.mjWARN_BADQACC)]
         self._faults = Faults.none(n)
         self._set_torque(np.zeros(n, dtype=bool))
         self._reset_data()
@@ -151,7 +154,7 @@ class MujocoRobot(RobotBase):
             if None in adr:
                 raise ModelMismatch(f"{self._model_file.name}: IMU site {sens.imu!r} needs framequat, gyro "
                                     "and accelerometer sensors")
-            self._imu = adr
+            self._imu = np.concatenate([np.arange(a, a + k) for a, k in zip(adr, (4, 3, 3), strict=True)])
         self._touch = None
         if sens.contacts:
             adrs = []
@@ -198,19 +201,21 @@ class MujocoRobot(RobotBase):
     # ------------------------------------------------------------------ I/O
     def _read(self) -> State:
         d = self.data
-        q = d.qpos[self._qadr]
-        dq = d.qvel[self._dadr]
-        if self.quantize:
-            q = quantize_position(q, self._m_per_rad)
-            dq = quantize_velocity(dq, self._m_per_rad)
+        q = d.qpos[self._qadr]  # fancy indexing: copies
+        qvel = d.qvel[self._dadr]
+        effort = d.actuator_force[self._act] - self._damping * qvel
+        if self.quantize:  # whole encoder ticks and velocity units, as the servo reports them
+            dq = np.rint(qvel * self._inv_vstep)
+            dq *= self._vstep
+            np.rint(q * self._inv_qstep, out=q)
+            q *= self._qstep
         else:
-            q, dq = q.copy(), dq.copy()
-        effort = d.actuator_force[self._act] - self._damping * d.qvel[self._dadr]
+            dq = qvel
         sd = d.sensordata
         imu = None
         if self._imu is not None:
-            a, g, c = self._imu
-            imu = Imu(quat=sd[a:a + 4].copy(), gyro=sd[g:g + 3].copy(), accel=sd[c:c + 3].copy())
+            v = sd[self._imu]  # one gather; the three fields are views of this copy
+            imu = Imu(quat=v[0:4], gyro=v[4:7], accel=v[7:10])
         contacts = None if self._touch is None else sd[self._touch] > TOUCH_THRESHOLD_N
         height = None if self._height_site is None else float(d.site_xpos[self._height_site, 2])
         return State(t=float(d.time), q=q, dq=dq, effort=effort, imu=imu, contacts=contacts,
@@ -246,8 +251,8 @@ class MujocoRobot(RobotBase):
             for _ in range(nstep):
                 mujoco.mj_step(m, d)
                 self.substep_hook(m, d)
-        w = d.warning
-        if w[self._bad[0]].number or w[self._bad[1]].number or w[self._bad[2]].number:
+        # On a non-finite or huge state MuJoCo counts a warning and resets the data.
+        if any(w.number for w in self._divergence):
             raise SimulationError(f"{self.spec.name}: physics diverged (MuJoCo flagged non-finite or huge "
                                   "state and reset); the episode cannot continue")
 
