@@ -11,8 +11,8 @@ from felis.sim.landing import ImpactRecorder, assess_landing
 from felis.sim.scenarios import drop, euler_quat, lowest_point, push, quat_euler, set_pose
 from felis.sim.servo import kp_from_gain, servo_params
 
-from felis.errors import ParameterError, SimulationError
-from felis.hal import Command
+from felis.errors import LifecycleError, ParameterError, SimulationError
+from felis.hal import Command, Lifecycle, Robot
 from felis.loop import run_loop
 from felis.servos import RAD_PER_TICK, SERVOS
 from felis.spec import ROBOTS_DIR, load_spec, parse_spec
@@ -225,6 +225,16 @@ def test_divergence_raises_simulation_error(cat):
     cat.data.qvel[:] = 1e12  # absurd state: MuJoCo flags it
     with pytest.raises(SimulationError, match="diverged"):
         cat.advance(0.01)
+    assert cat.lifecycle is Lifecycle.ERROR
+    assert np.all(cat.model.actuator_gainprm[:, 0] == 0)  # torque off
+    with pytest.raises(LifecycleError):
+        cat.write(Command(q=np.zeros(12)))
+    cat.close()
+    assert cat.lifecycle is Lifecycle.DISCONNECTED
+
+
+def test_mujoco_robot_is_a_hal_robot(cat):
+    assert isinstance(cat, Robot)
 
 
 def test_reset_restores_initial_state(cat):

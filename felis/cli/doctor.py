@@ -33,12 +33,14 @@ class Check:
 def check_versions() -> list[Check]:
     import felis
 
+    from importlib import metadata
+
     out = [Check("python", OK, sys.version.split()[0])]
     for mod, name in (("mujoco", "mujoco"), ("dynamixel_sdk", "dynamixel-sdk"), ("serial", "pyserial"),
                       ("numpy", "numpy")):
         try:
-            m = __import__(mod)
-            out.append(Check(name, OK, getattr(m, "__version__", "installed")))
+            __import__(mod)
+            out.append(Check(name, OK, metadata.version(name)))
         except Exception as e:  # noqa: BLE001
             out.append(Check(name, FAIL, f"cannot import ({e})", f"pip install {name}  (or: make demo)"))
     out.append(Check("felis", OK, felis.__version__))
@@ -83,7 +85,7 @@ def check_serial(ports: list[str] | None = None) -> list[Check]:
     ports = serial_ports() if ports is None else ports
     if not ports:
         return [Check("serial ports", INFO, "no USB serial adapter found (/dev/ttyUSB*, /dev/ttyACM*)",
-                      "plug in the U2D2/USB adapter; without hardware use the virtual bus")]
+                      "plug in the U2D2/USB adapter; without hardware, use the simulation (--backend sim)")]
     out = []
     for p in ports:
         if os.access(p, os.R_OK | os.W_OK):
