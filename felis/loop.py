@@ -136,21 +136,21 @@ def run_loop(
     extra = np.zeros(n_ticks)  # monitors + log
     name = getattr(controller, "name", type(controller).__name__)
 
-    state = robot.read()
-    if robot.lifecycle is not Lifecycle.ARMED:
-        robot.arm()
-        state = robot.read()
-    controller.reset(robot.spec, state)
-    layer.reset(state.q)
-    for m in monitors:
-        if hasattr(m, "reset"):
-            m.reset(robot.spec, state)
-    wall0 = time.perf_counter()
-    deadline = wall0
+    wall0 = deadline = time.perf_counter()
     stopped = "duration"
     ticks = 0
     finished = False  # the loop ended by its own rules, not by an exception
+    state = robot.read()
     try:
+        if robot.lifecycle is not Lifecycle.ARMED:
+            robot.arm()
+            state = robot.read()
+        controller.reset(robot.spec, state)
+        layer.reset(state.q)
+        for m in monitors:
+            if hasattr(m, "reset"):
+                m.reset(robot.spec, state)
+        wall0 = deadline = time.perf_counter()
         for k in range(n_ticks):
             t0 = time.perf_counter()
             try:
@@ -158,6 +158,7 @@ def run_loop(
                 dog.read_ok()
                 command = layer.filter(controller(state))
             except CommError as e:
+                layer.events = []
                 if log is not None:
                     log.event(state.t, "read_failed", error=str(e))
                 if dog.read_failed(e):

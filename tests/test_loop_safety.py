@@ -138,6 +138,15 @@ def test_watchdog_disarms_after_too_many_read_failures():
         assert report.ticks < 25
 
 
+def test_failure_right_after_arming_leaves_torque_off():
+    robot = FlakyCat(fail_ticks=[2])  # read 1: before arming; read 2: the first read once armed
+    with robot:
+        with pytest.raises(CommError):
+            run_loop(robot, PoseController("stand"), duration=1.0)
+        assert robot.lifecycle is Lifecycle.CONNECTED
+        assert np.all(robot.model.actuator_gainprm[:, 0] == 0)
+
+
 def test_watchdog_disarms_on_overruns_with_wall_clock(cat):
     class Slow(PoseController):
         def __call__(self, state):
@@ -217,3 +226,15 @@ def test_exception_in_with_block_turns_torque_off():
             robot.arm()
             raise KeyError("operator code failed")
     assert robot.lifecycle is Lifecycle.DISCONNECTED
+
+
+def test_logged_events_match_counters_through_read_failures(tmp_path):
+    from felis.runlog import RunLog, read_log
+
+    robot = FlakyCat(fail_ticks=[6, 7])
+    with robot, RunLog(tmp_path / "r.mcap", CAT) as log:
+        report = run_loop(robot, Scripted([np.full(12, 9.0)]), duration=0.2, log=log)
+    data = read_log(tmp_path / "r.mcap")
+    kinds = [e["kind"] for e in data.events]
+    assert kinds.count("limit_clamp") == report.safety["limit_clamps"] == 18  # 20 ticks, 2 without a command
+    assert kinds.count("read_failed") == report.read_failures == 2

@@ -31,9 +31,9 @@ class Check:
 
 
 def check_versions() -> list[Check]:
-    import felis
-
     from importlib import metadata
+
+    import felis
 
     out = [Check("python", OK, sys.version.split()[0])]
     for mod, name in (("mujoco", "mujoco"), ("dynamixel_sdk", "dynamixel-sdk"), ("serial", "pyserial"),
