@@ -104,7 +104,13 @@ class Lifecycle(enum.Enum):
 
 @runtime_checkable
 class Robot(Protocol):
-    """A robot the control loop can drive: simulation or hardware."""
+    """A robot the control loop can drive: simulation or hardware.
+
+    ``advance(dt)``: a simulation steps its physics by ``dt``; hardware (``realtime = True``) returns
+    at once, because the loop's wall clock paces the ticks (one place owns timing, so overruns are
+    measured the same way for every backend, and a simulation can also run in real time).
+    ``write`` returns the command actually sent, after the backend's own clamping.
+    """
 
     spec: RobotSpec
     realtime: bool  # True: advance() waits for wall-clock time (hardware)
