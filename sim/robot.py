@@ -132,6 +132,7 @@ class MujocoRobot(RobotBase):
             mujoco.mj_resetDataKeyframe(m, d, 0)
         self._goal = d.qpos[self._qadr].copy()
         self._dq_max = None
+        self._t_target = d.time
         d.ctrl[self._act] = self._goal
         mujoco.mj_forward(m, d)
 
@@ -240,7 +241,11 @@ class MujocoRobot(RobotBase):
 
     def _advance(self, dt: float) -> None:
         m, d = self.model, self.data
-        nstep = max(1, int(round(dt / m.opt.timestep)))
+        # whole physics steps that keep simulated time on the loop's clock, whatever the rate
+        self._t_target += dt
+        nstep = int(round((self._t_target - d.time) / m.opt.timestep))
+        if nstep <= 0:
+            return
         if self._dq_max is not None:  # profile velocity: move the actuator target at most dq_max·dt
             cur = d.ctrl[self._act]
             lim = self._dq_max * dt

@@ -380,6 +380,7 @@ BAD_INPUT = [
     ("unknown-controller", {}, ["run", "dance", "--robot", "cat", "--log", "out.mcap"], 1, ["dance", "stand"]),
     ("duration-zero", {}, ["run", "stand", "--robot", "cat", "--duration", "0", "--log", "out.mcap"],
      1, ["duration"]),
+    ("rate-too-high", {}, ["run", "stand", "--robot", "cat", "--rate", "5000", "--log", "o.mcap"], 1, ["rate", "5000"]),
     ("backend-dynamixel", {}, ["run", "stand", "--robot", "cat", "--backend", "dynamixel"], 1, ["dynamixel"]),
     ("backend-unknown", {}, ["run", "stand", "--robot", "cat", "--backend", "ros"], 2, ["--backend", "ros"]),
     ("sim-no-subcommand", {}, ["sim"], 2, ["felis sim", "sub-command"]),

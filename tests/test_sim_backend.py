@@ -243,3 +243,9 @@ def test_reset_restores_initial_state(cat):
     run_loop(cat, PoseController("sit"), duration=0.3, keep_armed=True)
     cat.reset()
     assert cat.data.time == 0 and np.array_equal(cat.data.qpos, q0)
+
+
+@pytest.mark.parametrize("rate", [100, 300, 64, 1000])
+def test_simulated_time_follows_the_loop_at_any_rate(cat, rate):
+    report = run_loop(cat, PoseController("hold"), duration=1.0, rate_hz=rate, keep_armed=True)
+    assert cat.data.time == pytest.approx(report.sim_time_s, abs=0.6e-3)  # within a physics step

@@ -31,6 +31,7 @@ class Episode:
     fps: float = 30.0
     size: tuple[int, int] = (640, 480)
     clock: str = "sim"
+    rate_hz: float | None = None  # None: the description's rate
     progress: object | None = None  # a loop monitor that shows progress (CLI)
     meta: dict = field(default_factory=dict)
 
@@ -56,6 +57,8 @@ class EpisodeResult:
 def _check(ep: Episode) -> None:
     if not (ep.duration > 0 and ep.duration <= 3600):
         raise ParameterError(f"duration must be within 0…3600 s, got {ep.duration}")
+    if ep.rate_hz is not None and not 1 <= ep.rate_hz <= 1000:
+        raise ParameterError(f"rate must be within 1…1000 Hz (physics runs at 1 kHz), got {ep.rate_hz:g}")
     from felis.sim.render import check_video_path
 
     if ep.video is not None:
@@ -98,8 +101,8 @@ def run_episode(ep: Episode) -> EpisodeResult:
                     meta["drop"] = {"height_m": info.height, "roll_deg": info.roll, "pitch_deg": info.pitch,
                                     "yaw_deg": info.yaw}
                 log = RunLog(ep.log, spec, meta)
-            report = run_loop(robot, controller, duration=ep.duration, clock=ep.clock, log=log,
-                              monitors=monitors)
+            report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock=ep.clock,
+                              log=log, monitors=monitors)
             if info is not None:
                 landing = assess_landing(robot, recorder)
         except BaseException:

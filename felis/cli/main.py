@@ -203,7 +203,7 @@ def cmd_run(args) -> int:
         raise FelisError(f"backend {args.backend!r} is not available yet: only 'sim' (the Dynamixel backend "
                          "arrives with felis.drivers)")
     res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration, log=args.log,
-                   clock=args.clock)
+                   clock=args.clock, rate_hz=args.rate)
     if args.json:
         _print_json(res.as_dict())
     else:
@@ -278,6 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--backend", default="sim", choices=["sim", "dynamixel"], help="where to run (default sim)")
     run.add_argument("--duration", type=_float, default=3.0, help="seconds (default 3)")
     run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
+    run.add_argument("--rate", type=_float, help="control rate in Hz (default: the description's, 100)")
     run.add_argument("--clock", choices=["sim", "wall"], default="sim",
                      help="sim: as fast as possible; wall: real time (default sim)")
     run.add_argument("--json", action="store_true", help="print the run report as JSON")
