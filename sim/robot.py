@@ -19,11 +19,11 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from felis.sim.servo import ServoParams, servo_params
+from felis.sim.servo import ServoParams, quantization_steps, servo_params
 
 from felis.errors import FelisError, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State
-from felis.servos import RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, servo_model
+from felis.servos import servo_model
 from felis.spec import RobotSpec
 
 MODELS_DIR = resources.files("felis.sim") / "models"
@@ -101,8 +101,7 @@ class MujocoRobot(RobotBase):
             self._qadr[i], self._dadr[i] = m.jnt_qposadr[jid], m.jnt_dofadr[jid]
         self._m_per_rad = np.array([j.m_per_rad for j in spec.joints])
         self._lower, self._upper = spec.lower, spec.upper
-        self._qstep = RAD_PER_TICK * self._m_per_rad  # quantisation steps (see felis.sim.servo)
-        self._vstep = RAD_S_PER_VELOCITY_UNIT * self._m_per_rad
+        self._qstep, self._vstep = quantization_steps(self._m_per_rad)
         self._inv_qstep, self._inv_vstep = 1.0 / self._qstep, 1.0 / self._vstep
         self.servo = {j.name: self._servo_override.get(j.name) or servo_params(servo_model(j.servo),
                                                                                m_per_rad=j.m_per_rad)

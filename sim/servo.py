@@ -18,8 +18,8 @@ so the servo is modelled as
 The D and I terms and the profile generator are not modelled (factory D/I are 0 on XL330/XM430).
 For a prismatic joint driven through a transmission ``r`` (m per rad of horn): force = τ/r, so
 ``kp/r²``, ``τ_stall/r``, ``damping/r²`` and ``armature/r²``.
-Position readings are quantised to 4096 ticks per turn and velocity to 0.229 rpm units by
-`quantize_position` and `quantize_velocity`, as the servo reports them.
+Readings are quantised as the servo reports them: positions to 4096 ticks per turn, velocities to
+0.229 rpm units (`quantization_steps`).
 """
 
 from __future__ import annotations
@@ -74,13 +74,11 @@ def servo_params(servo: ServoModel, p_gain: float | None = None, m_per_rad: floa
     return params if m_per_rad == 1.0 else params.through(m_per_rad)
 
 
-def quantize_position(q: np.ndarray, m_per_rad: np.ndarray) -> np.ndarray:
-    """Round joint positions to whole encoder ticks (4096 per turn of the horn)."""
-    step = RAD_PER_TICK * m_per_rad
-    return np.round(q / step) * step
+def quantization_steps(m_per_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Resolution of the servo's readings in joint units: (position step, velocity step).
 
-
-def quantize_velocity(dq: np.ndarray, m_per_rad: np.ndarray) -> np.ndarray:
-    """Round joint velocities to whole Present Velocity units (0.229 rpm of the horn)."""
-    step = RAD_S_PER_VELOCITY_UNIT * m_per_rad
-    return np.round(dq / step) * step
+    One encoder tick (2π/4096 rad of horn) and one Present Velocity unit (0.229 rpm of horn),
+    times the transmission. `MujocoRobot` rounds its readings to these steps.
+    """
+    m = np.asarray(m_per_rad, dtype=float)
+    return RAD_PER_TICK * m, RAD_S_PER_VELOCITY_UNIT * m

@@ -105,6 +105,15 @@ def _print_result(res, console) -> None:
         console.print(f"{kind}: {path}")
 
 
+def _report(args, res) -> int:
+    """Print an episode's result (JSON or text); exit code 1 if the watchdog stopped it."""
+    if args.json:
+        _print_json(res.as_dict())
+    else:
+        _print_result(res, _console())
+    return 0 if res.report.ok else EXIT_ERROR
+
+
 def _episode(args, **kw):
     from felis.cli.episode import Episode, run_episode
 
@@ -149,21 +158,13 @@ def _drop_args(args) -> tuple[float, float, float, float] | None:
 def cmd_sim_drop(args) -> int:
     res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
                    drop=(args.height, args.roll, args.pitch, args.yaw), log=args.log, video=args.video)
-    if args.json:
-        _print_json(res.as_dict())
-    else:
-        _print_result(res, _console())
-    return 0 if res.report.ok else EXIT_ERROR
+    return _report(args, res)
 
 
 def cmd_sim_render(args) -> int:
     res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
                    drop=_drop_args(args), video=args.out, fps=args.fps, size=args.size)
-    if args.json:
-        _print_json(res.as_dict())
-    else:
-        _print_result(res, _console())
-    return 0 if res.report.ok else EXIT_ERROR
+    return _report(args, res)
 
 
 def cmd_sim_view(args) -> int:
@@ -204,11 +205,7 @@ def cmd_run(args) -> int:
                          "arrives with felis.drivers)")
     res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration, log=args.log,
                    clock=args.clock, rate_hz=args.rate)
-    if args.json:
-        _print_json(res.as_dict())
-    else:
-        _print_result(res, _console())
-    return 0 if res.report.ok else EXIT_ERROR
+    return _report(args, res)
 
 
 def cmd_log_info(args) -> int:
