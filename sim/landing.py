@@ -32,8 +32,6 @@ class ImpactRecorder:
         self.floor = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, floor)
         if self.floor < 0:
             raise ValueError(f"model has no floor geom {floor!r}")
-        self.mass = robot.mass()
-        self.g = float(np.linalg.norm(m.opt.gravity))
         self.first_contact_t: float | None = None
         self.impact_speed: float | None = None
         self.peak_force = 0.0

@@ -81,7 +81,6 @@ class MujocoRobot(RobotBase):
         self._qadr = np.zeros(n, dtype=int)
         self._dadr = np.zeros(n, dtype=int)
         self._act = np.zeros(n, dtype=int)
-        self._jid = np.zeros(n, dtype=int)
         for i, j in enumerate(spec.joints):
             jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j.name)
             if jid < 0:
@@ -97,7 +96,7 @@ class MujocoRobot(RobotBase):
             aid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, j.name)
             if aid < 0 or m.actuator_trnid[aid, 0] != jid:
                 raise ModelMismatch(f"{self._model_file.name}: no actuator {j.name!r} driving joint {j.name!r}")
-            self._jid[i], self._act[i] = jid, aid
+            self._act[i] = aid
             self._qadr[i], self._dadr[i] = m.jnt_qposadr[jid], m.jnt_dofadr[jid]
         self._m_per_rad = np.array([j.m_per_rad for j in spec.joints])
         self._lower, self._upper = spec.lower, spec.upper
@@ -178,14 +177,11 @@ class MujocoRobot(RobotBase):
 
     # ------------------------------------------------------------------ torque
     def _set_torque(self, mask: np.ndarray) -> None:
-        m = self.model
-        for i, on in enumerate(mask):
-            if on == self._torque[i] and m.actuator_gainprm[self._act[i], 0] == (self._kp[i] if on else 0):
-                continue
-            kp = self._kp[i] if on else 0.0
-            m.actuator_gainprm[self._act[i], 0] = kp
-            m.actuator_biasprm[self._act[i], 1] = -kp
+        """Torque on: the servo's gain; off: zero gain and bias (only damping and friction remain)."""
         self._torque = np.array(mask, dtype=bool)
+        kp = np.where(self._torque, self._kp, 0.0)
+        self.model.actuator_gainprm[self._act, 0] = kp
+        self.model.actuator_biasprm[self._act, 1] = -kp
 
     def _arm(self) -> None:
         d = self.data
