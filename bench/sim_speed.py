@@ -21,11 +21,11 @@ import time
 
 import mujoco
 import numpy as np
+
 from felis.controllers import PoseController
+from felis.loop import run_loop
 from felis.sim import MujocoRobot
 from felis.sim.scenarios import drop
-
-from felis.loop import run_loop
 from felis.spec import load_spec
 
 DURATION, RATE = 2.0, 100.0

@@ -9,7 +9,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from felis.controllers.pose import PoseController
-
 from felis.errors import ParameterError
 from felis.hal import Controller
 

@@ -39,7 +39,10 @@ class CommError(FelisError):
     """Reading or writing the robot failed (lost reply, corrupt packet, vanished servo or port).
 
     The control loop tolerates a few of these in a row; past its tolerance the watchdog disarms.
+    ``fatal`` errors (the port itself is gone) end a run at once.
     """
+
+    fatal: bool = False
 
 
 class SafetyTrip(FelisError):

@@ -4,6 +4,8 @@
 
     for each tick k (t_k = t_0 + k·dt):
         state   = robot.read()              # CommError: hold the last command; watchdog counts
+                                            # stale joints (no reply) count like a failed read
+                                            # a hardware error (servo shutdown) stops the run
         command = controller(state)
         command = safety.filter(command)    # non-finite → hold, soft limits, max step
         sent    = robot.write(command)      # what the backend actually sent (after its clamping)
@@ -15,7 +17,8 @@ Clocks: ``"sim"`` runs as fast as the backend steps (simulated time only); ``"wa
 to real time (needed for hardware, optional for simulation, e.g. servo-in-the-loop or a viewer).
 The watchdog (see `felis.safety`) disarms the robot past its tolerances; any exception from the
 controller, a monitor or the backend disarms it too before propagating. Torque is left off at
-the end of a run unless ``keep_armed`` is set.
+the end of a run unless ``keep_armed`` is set. A fatal `CommError` (the port vanished) ends the
+run at once (``stopped = "comm lost: …"``).
 
 The report gives the control path's time per tick (read → write, excluding monitors, logging,
 physics and sleep): mean, p99, max; the mean time of monitors + logging; and overruns: with the
@@ -80,15 +83,17 @@ class LoopReport:
     ticks: int
     sim_time_s: float
     wall_time_s: float
-    stopped: str  # "duration", "until", "watchdog: …", "interrupted"
+    stopped: str  # "duration", "until", "interrupted", "watchdog: …", "hardware error: …", "comm lost: …"
     timing: Timing
     safety: dict[str, int]
     read_failures: int
+    stale_ticks: int = 0  # ticks where some joint's reading was not refreshed (hardware)
+    write_failures: int = 0
     final_state: State | None = field(default=None, repr=False)
 
     @property
     def ok(self) -> bool:
-        return not self.stopped.startswith("watchdog")
+        return not self.stopped.startswith(("watchdog", "hardware error", "comm lost"))
 
     def as_dict(self) -> dict:
         return {
@@ -96,7 +101,8 @@ class LoopReport:
             "rate_hz": self.rate_hz, "ticks": self.ticks, "sim_time_s": round(self.sim_time_s, 6),
             "wall_time_s": round(self.wall_time_s, 4), "stopped": self.stopped, "ok": self.ok,
             "timing": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.timing.__dict__.items()},
-            "safety": self.safety, "read_failures": self.read_failures,
+            "safety": self.safety, "read_failures": self.read_failures, "stale_ticks": self.stale_ticks,
+            "write_failures": self.write_failures,
         }
 
 
@@ -139,6 +145,7 @@ def run_loop(
     wall0 = deadline = time.perf_counter()
     stopped = "duration"
     ticks = 0
+    stale_ticks = write_failures = 0
     finished = False  # the loop ended by its own rules, not by an exception
     state = robot.read()
     try:
@@ -155,9 +162,25 @@ def run_loop(
             t0 = time.perf_counter()
             try:
                 state = robot.read()
-                dog.read_ok()
+                stale = state.faults.stale
+                if stale is not None and stale.any():  # some servos did not answer: their values are old
+                    stale_ticks += 1
+                    names = [robot.spec.names[i] for i in np.flatnonzero(stale)]
+                    if dog.read_failed(CommError(f"stale: {', '.join(names)}")):
+                        stopped = f"watchdog: {dog.tripped}"
+                        break
+                else:
+                    dog.read_ok()
+                if cfg.stop_on_hardware_error and state.faults.hardware.any():
+                    stopped = "hardware error: " + _hardware_summary(robot.spec, state.faults.hardware)
+                    if log is not None:
+                        log.event(state.t, "hardware_error", detail=stopped)
+                    break
                 command = layer.filter(controller(state))
             except CommError as e:
+                if getattr(e, "fatal", False):  # the port is gone: nothing to hold
+                    stopped = f"comm lost: {e}"
+                    break
                 layer.events = []
                 if log is not None:
                     log.event(state.t, "read_failed", error=str(e))
@@ -165,7 +188,14 @@ def run_loop(
                     stopped = f"watchdog: {dog.tripped}"
                     break
                 command = layer.last  # hold
-            sent = robot.write(command)
+            try:
+                sent = robot.write(command)
+            except CommError as e:
+                if getattr(e, "fatal", False):
+                    stopped = f"comm lost: {e}"
+                    break
+                write_failures += 1
+                sent = command
             layer.sent(sent)
             t_ctrl = time.perf_counter()
             for m in monitors:
@@ -207,5 +237,15 @@ def run_loop(
         robot=robot.spec.name, controller=name, clock=clock, rate_hz=rate, ticks=ticks,
         sim_time_s=ticks * dt, wall_time_s=time.perf_counter() - wall0, stopped=stopped,
         timing=Timing.from_samples(control[:ticks], extra[:ticks], dog.overruns, dt), safety=layer.counters.as_dict(),
-        read_failures=dog.read_failures, final_state=state,
+        read_failures=dog.read_failures, stale_ticks=stale_ticks, write_failures=write_failures, final_state=state,
     )
+
+
+def _hardware_summary(spec, bits: np.ndarray) -> str:
+    from felis.servos import hardware_error_names
+
+    parts = []
+    for i in np.flatnonzero(bits):
+        j = spec.joints[i]
+        parts.append(f"{j.name} (ID {j.servo_id}) {'+'.join(hardware_error_names(int(bits[i])))}")
+    return ", ".join(parts)

@@ -35,6 +35,7 @@ class SafetyConfig:
     max_speed_fraction: float = 1.0  # max step per tick as a fraction of v_max·dt
     read_fail_tolerance: int = 3  # consecutive failed reads tolerated; one more trips
     overrun_tolerance: int = 10  # consecutive overruns tolerated (wall clock only)
+    stop_on_hardware_error: bool = True  # a servo reporting a hardware error (e.g. overload) ends the run
 
     def __post_init__(self):
         if self.soft_margin < 0 or not 0 < self.max_speed_fraction <= 10:

@@ -65,6 +65,20 @@ SERVOS: dict[str, ServoModel] = {
 }
 
 
+# Stall current (A) at the nominal voltage: Present Current -> torque with kt = stall_torque / stall_current.
+# XL430-W250-T reports Present Load (fraction of stall torque) instead.
+STALL_CURRENT_A = {"XL330-M288-T": 1.47, "XL430-W250-T": 1.4, "XM430-W350-T": 2.3}
+
+# Hardware Error Status (addr 70) / Shutdown (addr 63) bit -> name
+HARDWARE_ERROR_BITS = {0: "input_voltage", 2: "overheating", 3: "motor_encoder", 4: "electrical_shock",
+                       5: "overload"}
+
+
+def hardware_error_names(bits: int) -> list[str]:
+    """Hardware Error Status bits -> names, e.g. ``0x20`` -> ``["overload"]``; unknown bits as ``bitN``."""
+    return [HARDWARE_ERROR_BITS.get(b, f"bit{b}") for b in range(8) if bits >> b & 1]
+
+
 def servo_model(name: str) -> ServoModel:
     """Look up a servo by model name; raises KeyError naming the known models."""
     try:

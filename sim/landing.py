@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 
 import mujoco
 import numpy as np
+
 from felis.sim.robot import MujocoRobot
 from felis.sim.scenarios import quat_euler
 

@@ -17,11 +17,11 @@ from pathlib import Path
 import imageio.v2 as imageio
 import mujoco
 import numpy as np
-from felis.sim.robot import MujocoRobot
 
 from felis.errors import FelisError, ParameterError
 from felis.files import prepare_parent
 from felis.hal import Command, State
+from felis.sim.robot import MujocoRobot
 
 FORMATS = (".mp4", ".gif", ".png")
 

@@ -19,11 +19,11 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from felis.sim.servo import ServoParams, quantization_steps, servo_params
 
 from felis.errors import FelisError, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State
 from felis.servos import servo_model
+from felis.sim.servo import ServoParams, quantization_steps, servo_params
 from felis.spec import RobotSpec
 
 MODELS_DIR = resources.files("felis.sim") / "models"

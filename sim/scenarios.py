@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
-from felis.sim.robot import MujocoRobot
 
 from felis.errors import ParameterError
+from felis.sim.robot import MujocoRobot
 
 MAX_DROP_HEIGHT = 20.0  # m
 MAX_IMPULSE = 50.0  # N·s

@@ -2,13 +2,13 @@
 
 import numpy as np
 import pytest
+
 from felis.controllers import CONTROLLERS, PoseController, make_controller
 from felis.controllers.pose import min_jerk
-from felis.sim import MujocoRobot
-
 from felis.errors import ParameterError
 from felis.hal import State
 from felis.loop import run_loop
+from felis.sim import MujocoRobot
 from felis.spec import load_spec
 
 

@@ -4,13 +4,13 @@ import time
 
 import numpy as np
 import pytest
-from felis.controllers import PoseController
-from felis.sim import MujocoRobot
 
+from felis.controllers import PoseController
 from felis.errors import CommError, LifecycleError, ParameterError
 from felis.hal import Command, Lifecycle
 from felis.loop import run_loop
 from felis.safety import SafetyConfig, SafetyLayer
+from felis.sim import MujocoRobot
 from felis.spec import load_spec
 
 CAT = load_spec("cat")

@@ -5,16 +5,16 @@ import math
 import mujoco
 import numpy as np
 import pytest
-from felis.controllers import PoseController
-from felis.sim import ModelMismatch, MujocoRobot
-from felis.sim.landing import ImpactRecorder, assess_landing
-from felis.sim.scenarios import drop, euler_quat, lowest_point, push, quat_euler, set_pose
-from felis.sim.servo import kp_from_gain, servo_params
 
+from felis.controllers import PoseController
 from felis.errors import LifecycleError, ParameterError, SimulationError
 from felis.hal import Command, Lifecycle, Robot
 from felis.loop import run_loop
 from felis.servos import RAD_PER_TICK, SERVOS
+from felis.sim import ModelMismatch, MujocoRobot
+from felis.sim.landing import ImpactRecorder, assess_landing
+from felis.sim.scenarios import drop, euler_quat, lowest_point, push, quat_euler, set_pose
+from felis.sim.servo import kp_from_gain, servo_params
 from felis.spec import ROBOTS_DIR, load_spec, parse_spec
 
 CAT, ARM = load_spec("cat"), load_spec("arm")

@@ -7,11 +7,11 @@ The default run does a few dozen episodes; ``make test-slow`` does hundreds.
 
 import numpy as np
 import pytest
-from felis.sim import MujocoRobot
-from felis.sim.scenarios import drop, lowest_point
 
 from felis.hal import Command
 from felis.loop import run_loop
+from felis.sim import MujocoRobot
+from felis.sim.scenarios import drop, lowest_point
 from felis.spec import load_spec
 
 CAT = load_spec("cat")
