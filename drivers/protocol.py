@@ -97,22 +97,6 @@ def status(dxl_id: int, error: int, params: bytes | bytearray = b"") -> bytes:
     return _packet(dxl_id, bytes((STATUS, error & 0xFF)) + bytes(params))
 
 
-def fast_status(entries: list[tuple[int, int, bytes]]) -> bytes:
-    """The single status packet of FAST_SYNC_READ / FAST_BULK_READ (ID 0xFE, not stuffed).
-
-    Each servo appends ``ERR ID data CRC``; every CRC covers the packet from its first byte, so the
-    last servo's CRC is the packet's CRC. ``entries`` holds (id, error, data) in reply order.
-    """
-    length = 1 + sum(4 + len(d) for _, _, d in entries)
-    pkt = bytearray(HEADER + bytes((BROADCAST_ID, length & 0xFF, length >> 8, STATUS)))
-    crc = crc16(pkt)
-    for dxl_id, err, data in entries:
-        seg = bytes((err & 0xFF, dxl_id)) + bytes(data)
-        crc = crc16(seg, crc)
-        pkt += seg + bytes((crc & 0xFF, crc >> 8))
-    return bytes(pkt)
-
-
 def u16(v: int) -> bytes:
     return int(v).to_bytes(2, "little")
 

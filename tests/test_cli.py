@@ -301,13 +301,24 @@ def test_demo(tmp_path):
     runs = list((tmp_path / "runs").iterdir())
     assert len(runs) == 1 and re.fullmatch(r"\d{8}-\d{6}(-\d+)?", runs[0].name), runs
     run = runs[0]
-    assert {p.name for p in run.iterdir()} == {"drop.mcap", "drop.mp4", "drop.png"}  # no temporaries
+    assert {p.name for p in run.iterdir()} == {"drop.mcap", "drop.mp4", "drop.png", "stand_dxl.mcap",
+                                              "stand_dxl.png"}  # no temporaries
     mp4 = (run / "drop.mp4").read_bytes()
     assert len(mp4) > 1000 and mp4[4:8] == b"ftyp"
     assert (run / "drop.png").read_bytes()[:8] == PNG_MAGIC
     assert (run / "drop.mcap").read_bytes().startswith(MCAP_MAGIC)
 
-    from felis.runlog import log_info
+    from felis.runlog import log_info, read_log
+
+    # part 1: servo-in-the-loop through the virtual bus: the whole hardware path, 50 Hz wall clock
+    bus = log_info(run / "stand_dxl.mcap")
+    assert bus["complete"] is True
+    assert bus["summary"]["run"]["ok"] and bus["summary"]["run"]["stale_ticks"] == 0
+    data = read_log(run / "stand_dxl.mcap")
+    assert data.meta["backend"] == "dxl" and data.quat is not None  # IMU through the emulated RVC line
+    assert abs(data.q[-1] - data.cmd_q[-1]).max() < 0.1  # the joints followed the commands through the bus
+    assert data.q[-1, data.joints.index("tail_pitch")] > 0.4
+    assert "virtual Dynamixel bus" in r.stdout
 
     info = log_info(run / "drop.mcap")
     assert info["robot"] == "cat" and info["complete"] is True
@@ -381,7 +392,9 @@ BAD_INPUT = [
     ("duration-zero", {}, ["run", "stand", "--robot", "cat", "--duration", "0", "--log", "out.mcap"],
      1, ["duration"]),
     ("rate-too-high", {}, ["run", "stand", "--robot", "cat", "--rate", "5000", "--log", "o.mcap"], 1, ["rate", "5000"]),
-    ("backend-dynamixel", {}, ["run", "stand", "--robot", "cat", "--backend", "dynamixel"], 1, ["dynamixel"]),
+    ("backend-dxl-no-port", {}, ["run", "stand", "--robot", "cat", "--backend", "dxl"], 1, ["--port"]),
+    ("backend-dxl-missing-port", {}, ["run", "stand", "--robot", "cat", "--backend", "dxl", "--port", "/dev/ttyUSB99"],
+     1, ["/dev/ttyUSB99", "does not exist"]),
     ("backend-unknown", {}, ["run", "stand", "--robot", "cat", "--backend", "ros"], 2, ["--backend", "ros"]),
     ("sim-no-subcommand", {}, ["sim"], 2, ["felis sim", "sub-command"]),
     ("log-no-subcommand", {}, ["log"], 2, ["felis log", "sub-command"]),

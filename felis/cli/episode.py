@@ -34,6 +34,11 @@ class Episode:
     rate_hz: float | None = None  # None: the description's rate
     progress: object | None = None  # a loop monitor that shows progress (CLI)
     meta: dict = field(default_factory=dict)
+    backend: str = "sim"  # "sim": MuJoCo directly; "dxl": Dynamixel servos on ``port``
+    port: str | None = None  # dxl: serial device, or "virtual" (a virtual bus backed by MuJoCo)
+    baud: int = 1_000_000
+    imu_port: str | None = None  # dxl: the IMU's serial device (cat)
+    warnings: list[str] = field(default_factory=list)  # filled by the run: connect-time advice
 
 
 @dataclass
@@ -42,9 +47,12 @@ class EpisodeResult:
     landing: object | None  # felis.sim.landing.Landing for drops
     drop: object | None
     files: dict[str, str]
+    warnings: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         out = {"run": self.report.as_dict(), "files": self.files}
+        if self.warnings:
+            out["warnings"] = self.warnings
         if self.drop is not None:
             d = self.drop
             out["drop"] = {"height_m": d.height, "roll_deg": d.roll, "pitch_deg": d.pitch, "yaw_deg": d.yaw,
@@ -73,6 +81,10 @@ def _check(ep: Episode) -> None:
 
 
 def run_episode(ep: Episode) -> EpisodeResult:
+    if ep.backend == "dxl":
+        return run_hardware(ep)
+    if ep.backend != "sim":
+        raise ParameterError(f"unknown backend {ep.backend!r}: use sim or dxl")
     from felis.sim import MujocoRobot
     from felis.sim.landing import ImpactRecorder, assess_landing
     from felis.sim.scenarios import drop
@@ -124,3 +136,51 @@ def run_episode(ep: Episode) -> EpisodeResult:
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
     return EpisodeResult(report=report, landing=landing, drop=info, files=files)
+
+
+def run_hardware(ep: Episode) -> EpisodeResult:
+    """The same run through the Dynamixel backend (wall clock). ``port="virtual"`` starts a virtual
+    bus whose servos are the MuJoCo model's joints (servo-in-the-loop): the whole hardware path."""
+    import contextlib
+
+    from felis.drivers.robot import DynamixelRobot
+
+    spec = load_spec(ep.robot)
+    controller = make_controller(ep.controller)
+    if ep.drop is not None or ep.video is not None:
+        raise ParameterError("drops and video need the simulation backend (--backend sim)")
+    if ep.port is None:
+        raise ParameterError("the dxl backend needs --port PATH (see `felis find-port`) or --port virtual")
+    _check(ep)
+    files: dict[str, str] = {}
+    with contextlib.ExitStack() as stack:
+        port, imu_port = ep.port, ep.imu_port
+        if port == "virtual":
+            from felis.drivers.virtual import spawn
+
+            vb = stack.enter_context(spawn(ep.robot, sim=True, baud=ep.baud))
+            port, imu_port = vb.port, imu_port or vb.imu_port
+        robot = stack.enter_context(DynamixelRobot(spec, port, ep.baud, imu_port=imu_port))
+        ep.warnings.extend(robot.warnings)
+        log = None
+        try:
+            if ep.log is not None:
+                from felis.runlog import RunLog
+
+                log = RunLog(ep.log, spec, {"controller": ep.controller, "backend": "dxl", "port": ep.port,
+                                            "baud": ep.baud, **ep.meta})
+            monitors = [] if ep.progress is None else [ep.progress]
+            report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock="wall", log=log,
+                              monitors=monitors)
+        except BaseException:
+            if log is not None:
+                log.close({"error": "run aborted"})
+            raise
+        if log is not None:
+            log.close({"run": report.as_dict()})
+            files["log"] = str(ep.log)
+    if ep.plot is not None and ep.log is not None:
+        from felis.plotlog import plot_log
+
+        files["plot"] = str(plot_log(ep.log, ep.plot))
+    return EpisodeResult(report=report, landing=None, drop=None, files=files, warnings=ep.warnings)

@@ -98,6 +98,8 @@ def _print_result(res, console) -> None:
     if res.drop is not None:
         console.print(f"drop: {res.drop.height:g} m, roll {res.drop.roll:g}° pitch {res.drop.pitch:g}° "
                       f"yaw {res.drop.yaw:g}° (free fall √(2h/g) = {res.drop.fall_time:.3f} s)")
+    for w in getattr(res, "warnings", []):
+        console.print(f"[yellow]warning:[/] {w}")
     if res.landing is not None:
         colour = "green" if res.landing.on_feet else "yellow"
         console.print(f"[{colour}]{res.landing.summary()}[/]")
@@ -200,11 +202,12 @@ def cmd_sim_view(args) -> int:
 
 
 def cmd_run(args) -> int:
-    if args.backend != "sim":
-        raise FelisError(f"backend {args.backend!r} is not available yet: only 'sim' (the Dynamixel backend "
-                         "arrives with felis.drivers)")
+    backend = "dxl" if args.backend in ("dxl", "dynamixel") else args.backend
+    if backend == "sim" and args.port is not None:
+        raise ParameterError("--port needs --backend dxl")
     res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration, log=args.log,
-                   clock=args.clock, rate_hz=args.rate)
+                   clock="wall" if backend == "dxl" else args.clock, rate_hz=args.rate, backend=backend,
+                   port=args.port, baud=args.baud, imu_port=args.imu_port)
     return _report(args, res)
 
 
@@ -230,7 +233,9 @@ def cmd_log_plot(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    """The cat dropped upside-down from 1 m under the stand controller."""
+    """Servo-in-the-loop: the cat stands up through the virtual Dynamixel bus backed by MuJoCo (the
+    whole hardware code path: DynamixelRobot, SDK, pseudo-terminal, byte-level servos, physics);
+    then the cat dropped upside-down from 1 m in MuJoCo directly, with video."""
     root = Path(args.out)
     if root.exists() and not root.is_dir():
         raise ParameterError(f"{root} exists and is not a directory")
@@ -241,14 +246,20 @@ def cmd_demo(args) -> int:
         n += 1
         run_dir = root / f"{stamp}-{n}"
     console = _console()
-    console.print("[bold]felis demo[/]: the cat dropped upside-down from 1 m under the stand controller (MuJoCo)")
     t0 = time.perf_counter()
+    console.print("[bold]felis demo 1/2[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
+                  "by MuJoCo (DynamixelRobot → dynamixel-sdk → pty → emulated servos → physics)")
+    bus_res = _episode(args, robot="cat", controller="stand", duration=3.0, backend="dxl", port="virtual",
+                       rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
+                       meta={"demo": True})
+    _print_result(bus_res, console)
+    console.print("[bold]felis demo 2/2[/]: the cat dropped upside-down from 1 m under the stand controller (MuJoCo)")
     res = _episode(args, robot="cat", controller="stand", duration=2.5, drop=(1.0, 180.0, 0.0, 0.0),
                    log=run_dir / "drop.mcap", video=None if args.no_video else run_dir / "drop.mp4",
                    plot=run_dir / "drop.png", meta={"demo": True})
     _print_result(res, console)
     console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {run_dir}/")
-    return 0 if res.report.ok else EXIT_ERROR
+    return 0 if res.report.ok and bus_res.report.ok else EXIT_ERROR
 
 
 # --------------------------------------------------------------------------------- parser
@@ -264,7 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--json", action="store_true", help="print results as JSON")
     d.set_defaults(func=cmd_doctor)
 
-    demo = sub.add_parser("demo", help="drop the simulated cat upside-down; write log, video and plot")
+    demo = sub.add_parser("demo", help="the cat through the virtual Dynamixel bus (servo-in-the-loop), then a "
+                          "simulated drop; logs, plots, video")
     demo.add_argument("--out", default="runs", help="directory for runs/<timestamp>/ (default: runs)")
     demo.add_argument("--no-video", action="store_true", help="skip rendering")
     demo.set_defaults(func=cmd_demo)
@@ -272,7 +284,11 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run a controller on a robot")
     run.add_argument("controller", help="controller name: hold, stand, sit, zero")
     run.add_argument("--robot", required=True, help="robot name (cat, arm) or a description .toml")
-    run.add_argument("--backend", default="sim", choices=["sim", "dynamixel"], help="where to run (default sim)")
+    run.add_argument("--backend", default="sim", choices=["sim", "dxl", "dynamixel"],
+                     help="sim: MuJoCo; dxl: Dynamixel servos on --port (default sim)")
+    run.add_argument("--port", help="dxl: serial device, or 'virtual' (virtual bus backed by MuJoCo)")
+    run.add_argument("--baud", type=int, default=1_000_000, help="dxl: baud rate (default 1000000)")
+    run.add_argument("--imu-port", help="dxl: serial device of the cat's IMU (BNO08x UART-RVC)")
     run.add_argument("--duration", type=_float, default=3.0, help="seconds (default 3)")
     run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
     run.add_argument("--rate", type=_float, help="control rate in Hz (default: the description's, 100)")
@@ -280,6 +296,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="sim: as fast as possible; wall: real time (default sim)")
     run.add_argument("--json", action="store_true", help="print the run report as JSON")
     run.set_defaults(func=cmd_run)
+
+    from felis.cli import dxl
+
+    dxl.register(sub, _Parser)
+    __import__("felis.cli.virtualbus", fromlist=["register"]).register(sub, _Parser)  # felis virtual-bus
 
     sim = sub.add_parser("sim", help="simulation: drop, render, view")
     simsub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", parser_class=_Parser)
@@ -341,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command is None:
             parser.print_help()
             return EXIT_USAGE
-        if args.command in ("demo", "sim", "run") and "MUJOCO_GL" not in os.environ:
+        if args.command in ("demo", "sim", "run", "virtual-bus") and "MUJOCO_GL" not in os.environ:
             from felis.cli.doctor import has_display
 
             if not has_display():

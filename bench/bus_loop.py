@@ -1,0 +1,170 @@
+"""Benchmark: the cat's 12-servo bus cycle (one sync read of position, velocity, current plus one
+sync write) through felis against the bare SDK, over the virtual bus's pseudo-terminal.
+
+The virtual bus runs in its own process (``felis virtual-bus``), so client and servos do not share
+a GIL, as with real hardware. Three parts:
+
+(a) wire-time modelling off: cycles/s of ``DynamixelRobot.read() + write()`` against the loop a
+    ``dynamixel-sdk`` user writes by hand (``GroupSyncRead`` at 126×10 with 36 ``getData`` calls,
+    ``GroupSyncWrite`` at 116×4 with ``changeParam``) in the same run; blocks interleaved, ratio =
+    median of per-pair ratios. felis is measured with its default (Fast Sync Read) and with plain
+    sync read. Goal ≥ 0.8.
+(b) wire-time modelling at 4 Mbps, Return Delay 0: felis's achieved rate against the wire ceiling
+    of the bytes it puts on the bus per cycle (10 bits per byte; ``shared/reference/dynamixel.md``).
+    Goal ≥ 0.5.
+(c) 1 % of replies dropped: 10 000 cycles, counting crashes (any exception) and stale ticks.
+
+    python bench/bus_loop.py [--seconds S] [--pairs N] [--cycles C] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import dynamixel_sdk as sdk
+
+from felis.drivers.robot import DynamixelRobot
+from felis.drivers.virtual import spawn
+from felis.errors import CommError
+from felis.hal import Command
+from felis.spec import load_spec
+
+BAUD = 4_000_000
+
+
+def bare_sdk(port_name: str, ids: list[int], seconds: float) -> float:
+    port = sdk.PortHandler(port_name)
+    port.openPort()
+    port.setBaudRate(BAUD)
+    ph = sdk.PacketHandler(2.0)
+    reader = sdk.GroupSyncRead(port, ph, 126, 10)
+    writer = sdk.GroupSyncWrite(port, ph, 116, 4)
+    for i in ids:
+        reader.addParam(i)
+        writer.addParam(i, [0, 8, 0, 0])
+    n = 0
+    t0 = time.perf_counter()
+    try:
+        while time.perf_counter() - t0 < seconds:
+            if reader.txRxPacket() != sdk.COMM_SUCCESS:
+                continue
+            goal = []
+            for i in ids:
+                reader.getData(i, 126, 2)
+                reader.getData(i, 128, 4)
+                goal.append(reader.getData(i, 132, 4))
+            for i, g in zip(ids, goal, strict=True):
+                writer.changeParam(i, [g & 0xFF, (g >> 8) & 0xFF, (g >> 16) & 0xFF, (g >> 24) & 0xFF])
+            writer.txPacket()
+            n += 1
+    finally:
+        port.closePort()
+    return n / (time.perf_counter() - t0)
+
+
+def felis_cycles(robot: DynamixelRobot, seconds: float | None = None, cycles: int | None = None) -> dict:
+    """read()+write() cycles holding the present position; returns rate, stale ticks and crashes."""
+    n = stale = failed = crashes = 0
+    t0 = time.perf_counter()
+    state = robot.read()
+    while (seconds is None or time.perf_counter() - t0 < seconds) and (cycles is None or n < cycles):
+        try:
+            state = robot.read()
+            if state.faults.stale is not None and state.faults.stale.any():
+                stale += 1
+        except CommError:
+            failed += 1
+        except Exception:  # a crash: the benchmark counts it rather than dying
+            crashes += 1
+        try:
+            robot.write(Command(q=state.q))
+        except Exception:
+            crashes += 1
+        n += 1
+    dt = time.perf_counter() - t0
+    return {"rate_hz": n / dt, "cycles": n, "stale_ticks": stale, "failed_reads": failed, "crashes": crashes}
+
+
+def ceiling_hz(n: int, fast: bool, baud: int = BAUD) -> tuple[float, int]:
+    read_req = 14 + n
+    replies = 8 + n * (10 + 4) if fast else n * (11 + 10)
+    write = 14 + n * (1 + 4)  # goals only (no velocity limits in these commands): 4 bytes per servo
+    total = read_req + replies + write
+    return baud / (10.0 * total), total
+
+
+def part_a(spec, seconds: float, pairs: int) -> dict:
+    ids = [j.servo_id for j in spec.joints]
+    out: dict = {}
+    with spawn(spec.name, baud=BAUD) as vb:
+        for label, fast in (("fast_sync_read", True), ("sync_read", False)):
+            ratios, bare_rates, felis_rates = [], [], []
+            for _ in range(pairs):
+                b = bare_sdk(vb.port, ids, seconds)
+                with DynamixelRobot(spec, vb.port, BAUD, fast_sync_read=fast) as robot:
+                    robot.arm()
+                    f = felis_cycles(robot, seconds)["rate_hz"]
+                bare_rates.append(b)
+                felis_rates.append(f)
+                ratios.append(f / b)
+            out[label] = {"ratio": statistics.median(ratios), "felis_hz": statistics.median(felis_rates),
+                          "bare_sdk_hz": statistics.median(bare_rates)}
+    return out
+
+
+def part_b(spec, seconds: float) -> dict:
+    out = {}
+    with spawn(spec.name, baud=BAUD, wire_time=True) as vb:
+        for label, fast in (("fast_sync_read", True), ("sync_read", False)):
+            with DynamixelRobot(spec, vb.port, BAUD, fast_sync_read=fast) as robot:
+                robot.arm()
+                r = felis_cycles(robot, seconds)
+            ceil, nbytes = ceiling_hz(spec.n, fast)
+            out[label] = {"rate_hz": r["rate_hz"], "ceiling_hz": ceil, "bytes_per_cycle": nbytes,
+                          "ratio": r["rate_hz"] / ceil}
+    return out
+
+
+def part_c(spec, cycles: int) -> dict:
+    with spawn(spec.name, baud=BAUD, faults="drop=0.01,seed=1") as vb:
+        with DynamixelRobot(spec, vb.port, BAUD) as robot:
+            robot.arm()
+            r = felis_cycles(robot, cycles=cycles)
+            r["retries"] = int(sum(s.retries for s in robot.bus.stats.values()))
+            r["timeouts"] = int(sum(s.timeouts for s in robot.bus.stats.values()))
+    return r
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=1.5, help="seconds per measurement block")
+    ap.add_argument("--pairs", type=int, default=3, help="interleaved bare/felis pairs in (a)")
+    ap.add_argument("--cycles", type=int, default=10_000, help="cycles in (c)")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    spec = load_spec("cat")
+    res = {"servos": spec.n, "baud": BAUD,
+           "a_no_wire_time": part_a(spec, args.seconds, args.pairs),
+           "b_wire_time_4mbps": part_b(spec, args.seconds * 2),
+           "c_one_percent_dropped": part_c(spec, args.cycles)}
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return
+    a, b, c = res["a_no_wire_time"], res["b_wire_time_4mbps"], res["c_one_percent_dropped"]
+    print(f"bus loop, {spec.n} servos, sync read 126×10 + sync write per cycle, pty, bus in its own process")
+    for k, v in a.items():
+        print(f"(a) no wire time, felis {k}: {v['felis_hz']:.0f} cycles/s vs bare SDK {v['bare_sdk_hz']:.0f} "
+              f"cycles/s: ratio {v['ratio']:.2f} (goal ≥ 0.8)")
+    for k, v in b.items():
+        print(f"(b) wire time at 4 Mbps, RDT 0, felis {k}: {v['rate_hz']:.0f} Hz vs ceiling {v['ceiling_hz']:.0f} Hz "
+              f"({v['bytes_per_cycle']} bytes/cycle): ratio {v['ratio']:.2f} (goal ≥ 0.5)")
+    print(f"(c) 1% dropped replies: {c['cycles']} cycles, {c['crashes']} crashes, {c['stale_ticks']} stale ticks, "
+          f"{c['failed_reads']} reads with no servo answering, {c['retries']} retries, {c['timeouts']} timeouts; "
+          f"{c['rate_hz']:.0f} cycles/s")
+
+
+if __name__ == "__main__":
+    main()

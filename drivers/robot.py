@@ -1,0 +1,275 @@
+"""`DynamixelRobot`: the HAL `Robot` on real (or virtual) Dynamixel servos.
+
+Units: radians and SI above this class; ticks only inside it. For joint i with description fields
+direction ``d``, zero ``z`` (rad around tick 2048) and transmission ``m`` (``felis.spec``), and a
+calibration with direction ``c`` and offset ``o`` (rad; identity until calibration exists)::
+
+    horn angle  a = c·(d·q/m + z) + o = k·q + b,   k = c·d/m,   b = c·z + o
+    ticks       = 2048 + a / (2π/4096)
+    q           = (a − b) / k,   dq = ω_horn / k,   effort = τ_horn · k
+
+so a calibrated joint has the same zero and sign as the MJCF model. Effort comes from Present
+Current (× stall torque / stall current) or, on XL430, Present Load (fraction of stall torque).
+
+Per tick: one sync read of the contiguous block Present Current/Load, Velocity, Position (address
+126, 10 bytes; Fast Sync Read where the firmware has it) and one sync write of Profile Velocity +
+Goal Position (address 112, 8 bytes, contiguous) when the command carries velocity limits (so they cost
+no extra packet), else of Goal Position alone (address 116, 4 bytes). A
+servo that did not answer keeps its last values and is marked in ``State.faults.stale``; if none
+answered, ``read()`` raises `CommError` (the loop holds the last command and counts it). A status
+byte with the Alert bit triggers a read of Hardware Error Status (at most every
+``hardware_poll_s`` per servo) into ``State.faults.hardware``.
+
+``arm()`` reads the present positions, writes them as goals, then enables torque and reads Torque
+Enable back: no jump at start-up, and a servo that refuses torque (hardware-error shutdown) is an
+error naming it. Torque goes off on ``disarm()``, ``close()`` and on any unhandled exception.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from felis.drivers.bus import DynamixelBus, NoReplyError
+from felis.drivers.controltable import STATE_BLOCK, control_table
+from felis.errors import CommError, DescriptionError
+from felis.hal import Command, Faults, Imu, RobotBase, State
+from felis.servos import RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, STALL_CURRENT_A, hardware_error_names, servo_model
+from felis.spec import RobotSpec
+
+_GOAL_BLOCK = (112, 8)  # Profile Velocity (4) + Goal Position (4)
+_GOAL = (116, 4)  # Goal Position alone
+_TORQUE_ENABLE = 64
+_BLOCK_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Per-joint horn-frame correction: ``a = direction·(servo angle from the description) + offset``."""
+
+    direction: np.ndarray  # ±1 per joint
+    offset: np.ndarray  # rad per joint
+
+    @staticmethod
+    def identity(n: int) -> Calibration:
+        return Calibration(np.ones(n), np.zeros(n))
+
+
+class DynamixelRobot(RobotBase):
+    """A robot description driven over one Dynamixel bus (and, for the cat, an RVC IMU port).
+
+    Args:
+        spec: the robot description.
+        port: serial device of the Dynamixel bus.
+        baud: the servos' baud rate.
+        calibration: per-joint direction and offset; identity when None.
+        imu_port: serial device of the BNO08x in UART-RVC mode (only if the description has an IMU).
+        bus: an already-built `DynamixelBus` (tests, custom timeouts); ``port``/``baud`` are then ignored.
+        retries: extra sync reads per tick for servos that did not answer.
+    """
+
+    realtime = True
+
+    def __init__(self, spec: RobotSpec, port: str, baud: int = 1_000_000, *, calibration: Calibration | None = None,
+                 imu_port: str | None = None, bus: DynamixelBus | None = None, retries: int = 1,
+                 fast_sync_read: bool = True, hardware_poll_s: float = 0.5):
+        super().__init__(spec)
+        self.bus = bus or DynamixelBus(port, baud, retries=retries, fast_sync_read=fast_sync_read)
+        self.ids = [j.servo_id for j in spec.joints]
+        self.imu_port = imu_port
+        self.imu = None
+        self.calibration = calibration or Calibration.identity(spec.n)
+        self.hardware_poll_s = hardware_poll_s
+        self.warnings: list[str] = []
+        n = spec.n
+        cal = self.calibration
+        d = np.array([j.direction for j in spec.joints], float)
+        z = np.array([j.zero for j in spec.joints], float)
+        m = np.array([j.m_per_rad for j in spec.joints], float)
+        self._k = cal.direction * d / m
+        self._b = cal.direction * z + cal.offset
+        models = [servo_model(j.servo) for j in spec.joints]
+        # raw Present Current/Load unit -> horn torque (N·m)
+        self._torque_per_unit = np.array([
+            (mdl.stall_torque / STALL_CURRENT_A[mdl.name]) * control_table(mdl.name).items["present_current"].scale
+            if "present_current" in control_table(mdl.name).items else mdl.stall_torque * 0.001
+            for mdl in models])
+        self._q = np.zeros(n)
+        self._dq = np.zeros(n)
+        self._effort = np.zeros(n)
+        self._hw = np.zeros(n, dtype=np.int32)
+        self._alert_at = np.full(n, -np.inf)
+        self._torque = np.zeros(n, dtype=bool)
+        self._t0 = time.monotonic()
+        self._profile_set = False  # a nonzero Profile Velocity was written: the next write must reset it
+
+    # ------------------------------------------------------------------ conversions
+    def q_to_ticks(self, q: np.ndarray) -> np.ndarray:
+        a = self._k * np.asarray(q, float) + self._b
+        return np.clip(np.rint(2048.0 + a / RAD_PER_TICK), 0, 4095).astype(np.int64)
+
+    def ticks_to_q(self, ticks: np.ndarray) -> np.ndarray:
+        a = (np.asarray(ticks, float) - 2048.0) * RAD_PER_TICK
+        return (a - self._b) / self._k
+
+    # ------------------------------------------------------------------ lifecycle
+    def _connect(self) -> None:
+        bus = self.bus
+        bus.open()
+        missing, wrong = [], []
+        for j in self.spec.joints:
+            try:
+                f = bus.ping(j.servo_id, retries=2)
+            except NoReplyError:
+                missing.append(f"{j.name} (ID {j.servo_id})")
+                continue
+            if f.model != j.servo:
+                wrong.append(f"{j.name}: ID {j.servo_id} is a {f.model}, the description says {j.servo}")
+        if missing:
+            raise CommError(f"{len(missing)} of {self.spec.n} servos do not answer at {bus.baud} bps on "
+                            f"{bus.port_name}: {', '.join(missing)}; check power and cabling, or `felis scan`")
+        if wrong:
+            raise DescriptionError(self.spec.source, "servo", "; ".join(wrong))
+        modes = bus.sync_read(self.ids, 11, 1, fast=False, retries=2)
+        not_position = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints
+                        if modes.data[j.servo_id] is not None and modes.data[j.servo_id][0] != 3]
+        if not_position:
+            raise CommError(f"servos not in position mode: {', '.join(not_position)}; fix: `felis torque off` then "
+                            "`felis write ID operating_mode position`")
+        for i, secs, fix in bus.check_return_delay(self.ids):
+            self.warnings.append(f"servo {i}: Return Delay Time {secs * 1e6:.0f} µs slows every read; fix: {fix}")
+        lat = bus.latency_warning()
+        if lat:
+            self.warnings.append(lat)
+        if self.imu_port and self.spec.sensors.imu:
+            from felis.drivers.imu import ImuReader
+
+            self.imu = ImuReader(self.imu_port)
+        self._t0 = time.monotonic()
+        self._read_block(require_all=True)
+
+    def _arm(self) -> None:
+        bus = self.bus
+        self._read_block(require_all=True)  # goal = present: no jump when torque comes on
+        ticks = self.q_to_ticks(self._q)
+        bus.sync_write(*_GOAL_BLOCK, {i: _goal_bytes(0, t) for i, t in zip(self.ids, ticks, strict=True)})
+        self._profile_set = False
+        self._set_torque(np.ones(self.spec.n, dtype=bool))
+        back = bus.sync_read(self.ids, _TORQUE_ENABLE, 1, fast=False, retries=2)
+        refused = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints
+                   if back.data[j.servo_id] is None or back.data[j.servo_id][0] != 1]
+        if refused:
+            hw = []
+            for j in self.spec.joints:
+                if f"{j.name} (ID {j.servo_id})" in refused:
+                    try:
+                        _, names = bus.hardware_error(j.servo_id)
+                        if names:
+                            hw.append(f"{j.name}: {'+'.join(names)}")
+                    except CommError:
+                        pass
+            detail = f" (hardware error: {', '.join(hw)}; `felis reboot ID` clears it)" if hw else ""
+            raise CommError(f"torque did not come on for {', '.join(refused)}{detail}")
+
+    def _set_torque(self, mask: np.ndarray) -> None:
+        self.bus.sync_write(_TORQUE_ENABLE, 1, {i: bytes((int(on),)) for i, on in zip(self.ids, mask, strict=True)})
+        self._torque = np.array(mask, dtype=bool)
+
+    def _disarm(self) -> None:
+        if self.bus.is_open:
+            self._set_torque(np.zeros(self.spec.n, dtype=bool))
+
+    def _close(self) -> None:
+        try:
+            if self.bus.is_open:
+                try:
+                    self._set_torque(np.zeros(self.spec.n, dtype=bool))
+                except CommError:
+                    pass  # the port is gone: nothing more we can do
+        finally:
+            self.bus.close()
+            if self.imu is not None:
+                self.imu.close()
+                self.imu = None
+
+    # ------------------------------------------------------------------ tick
+    def _read_block(self, require_all: bool = False) -> np.ndarray:
+        ids = self.ids
+        res = self.bus.sync_read(ids, *STATE_BLOCK, retries=2 if require_all else None)
+        stale = np.array([res.data[i] is None for i in ids])
+        if stale.all() or (require_all and stale.any()):
+            names = [f"{j.name} (ID {j.servo_id})" for j, s in zip(self.spec.joints, stale, strict=True) if s]
+            raise CommError(f"no reply from {', '.join(names)} on {self.bus.port_name}")
+        ok = ~stale
+        raw = np.frombuffer(b"".join(res.data[i] for i, s in zip(ids, stale, strict=True) if not s), dtype=_BLOCK_DTYPE)
+        self._q[ok] = ((raw["position"] - 2048.0) * RAD_PER_TICK - self._b[ok]) / self._k[ok]
+        self._dq[ok] = raw["velocity"] * RAD_S_PER_VELOCITY_UNIT / self._k[ok]
+        self._effort[ok] = raw["current"] * self._torque_per_unit[ok] * self._k[ok]
+        if res.errors:
+            now = time.monotonic()
+            for idx, i in enumerate(ids):
+                err = res.errors.get(i, 0)
+                if err & 0x80:
+                    if now - self._alert_at[idx] >= self.hardware_poll_s:
+                        self._alert_at[idx] = now
+                        try:
+                            self._hw[idx] = self.bus.hardware_error(i)[0]
+                        except CommError:
+                            pass
+                elif i in res.errors:
+                    self._hw[idx] = 0
+        return stale
+
+    def _read(self) -> State:
+        stale = self._read_block()
+        imu = None
+        if self.imu is not None:
+            imu = self.imu.latest()
+        return State(t=time.monotonic() - self._t0, q=self._q.copy(), dq=self._dq.copy(), effort=self._effort.copy(),
+                     imu=imu if isinstance(imu, Imu) else None,
+                     faults=Faults(hardware=self._hw.copy(), comm_errors=self.bus.failed_transactions,
+                                   stale=stale))
+
+    def _write(self, command: Command) -> Command:
+        q = np.asarray(command.q, float)
+        if q.shape != (self.spec.n,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"command must be {self.spec.n} finite joint targets")
+        torque = command.torque
+        if torque is not None:
+            torque = np.asarray(torque, dtype=bool)
+            if not np.array_equal(torque, self._torque):
+                self._set_torque(torque)
+        elif not self._torque.all():
+            self._set_torque(np.ones(self.spec.n, dtype=bool))
+        ticks = self.q_to_ticks(q)
+        if command.dq_max is None and not self._profile_set:  # goals only: 4 bytes per servo
+            raw = ticks.astype("<i4").tobytes()
+            self.bus.sync_write(*_GOAL, {i: raw[4 * k: 4 * k + 4] for k, i in enumerate(self.ids)})
+        else:  # Profile Velocity + Goal Position in one 8-byte block (0 = unlimited)
+            if command.dq_max is None:
+                prof = np.zeros(self.spec.n, dtype=np.int64)
+            else:
+                dq_max = np.asarray(command.dq_max, float)
+                v = np.abs(np.nan_to_num(dq_max * self._k, nan=0.0, posinf=0.0)) / RAD_S_PER_VELOCITY_UNIT
+                prof = np.where(np.isfinite(dq_max), np.clip(np.ceil(v), 1, 32767), 0).astype(np.int64)
+            buf = np.empty(self.spec.n, dtype=[("prof", "<u4"), ("goal", "<u4")])
+            buf["prof"], buf["goal"] = prof, ticks
+            raw = buf.tobytes()
+            self.bus.sync_write(*_GOAL_BLOCK, {i: raw[8 * k: 8 * k + 8] for k, i in enumerate(self.ids)})
+            self._profile_set = bool(prof.any())
+        return Command(q=self.ticks_to_q(ticks), dq_max=command.dq_max, torque=torque)
+
+    def _advance(self, dt: float) -> None:
+        """Hardware moves on its own; the loop's wall clock paces the ticks."""
+
+    def hardware_errors(self) -> dict[str, list[str]]:
+        """Joints with hardware errors, by name (from the last read)."""
+        return {j.name: hardware_error_names(int(b)) for j, b in zip(self.spec.joints, self._hw, strict=True) if b}
+
+
+def _goal_bytes(profile: int, ticks: int) -> bytes:
+    return int(profile).to_bytes(4, "little") + int(ticks).to_bytes(4, "little", signed=True)
+
+

@@ -1,0 +1,424 @@
+"""DynamixelBus and DynamixelRobot through the unmodified SDK against the virtual bus on a pty.
+
+Covers the driver's guarantees: reads by name in SI and raw, guards that write nothing (unknown
+item, out of range, read-only, EEPROM with torque on, missing port), per-servo stale marking,
+retries and counters, recovery from the SDK's stuck busy flag, fault injection (drop, corrupt,
+delay, removed servo, hardware error, closed port) ending in retry, stale mark or disarm with no
+crash, scan across baud rates, and a fuzz test of the driver against arbitrary replies.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import select
+import threading
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from felis.drivers import protocol as P
+from felis.drivers.bus import (
+    CorruptReplyError,
+    DynamixelBus,
+    NoReplyError,
+    PortError,
+    ServoStatusError,
+    baud_code,
+)
+from felis.drivers.controltable import control_table
+from felis.drivers.robot import DynamixelRobot
+from felis.drivers.virtual import VirtualBus, VirtualServo
+from felis.errors import CommError, ParameterError
+from felis.hal import Command, Lifecycle
+from felis.loop import run_loop
+from felis.safety import SafetyConfig
+from felis.spec import load_spec
+
+BAUD = 1_000_000
+
+
+@pytest.fixture
+def cat_bus():
+    with VirtualBus.for_robot("cat", baud=BAUD) as vb:
+        yield vb
+
+
+@pytest.fixture
+def bus(cat_bus):
+    with DynamixelBus(cat_bus.port, BAUD) as b:
+        yield b
+
+
+# --------------------------------------------------------------------------------- basics
+def test_ping_reports_the_description_models(bus):
+    spec = load_spec("cat")
+    for j in spec.joints:
+        f = bus.ping(j.servo_id)
+        assert f.model == j.servo and f.firmware > 0
+
+
+def test_read_write_by_name_in_si_and_raw(bus):
+    assert bus.read(1, "model_number", raw=True) == 1200
+    assert bus.read(1, "Present Position") == pytest.approx(0.0, abs=0.01)
+    bus.write(1, "goal_position", 0.5)
+    assert bus.read(1, "goal_position", raw=True) == 2048 + round(0.5 / (2 * math.pi / 4096))
+    assert bus.read(1, "return_delay_time") == 0.0
+    assert bus.read(1, "baud_rate") == BAUD
+    assert bus.read(1, "operating_mode") == "position"
+
+
+def test_byte_stuffing_round_trip_through_the_driver(bus):
+    # goal_pwm = -1 (FF FF) then goal_current = -3 (FD FF): the packet carries FF FF FD -> stuffed
+    bus.write_raw(1, 100, b"\xff\xff\xfd\xff")
+    assert bus.read_raw(1, 100, 4) == b"\xff\xff\xfd\xff"
+    assert bus.read(1, "goal_current", raw=True) == -3
+
+
+# --------------------------------------------------------------------------------- guards
+def test_unknown_item_names_the_nearest(bus):
+    with pytest.raises(ParameterError, match="did you mean 'goal_position'"):
+        bus.read(1, "goal_postion")
+
+
+def test_out_of_range_value_writes_nothing(bus):
+    before = bus.read(1, "goal_position", raw=True)
+    with pytest.raises(ParameterError, match="goal_position"):
+        bus.write(1, "goal_position", 2_000_000, raw=True)
+    with pytest.raises(ParameterError, match="status_return_level"):
+        bus.write(1, "status_return_level", 3, raw=True)
+    assert bus.read(1, "goal_position", raw=True) == before
+
+
+def test_read_only_item_is_refused(bus):
+    with pytest.raises(ParameterError, match="read-only"):
+        bus.write(1, "present_position", 0.0)
+
+
+def test_eeprom_guard_with_torque_on_writes_nothing(bus):
+    bus.write(2, "torque_enable", 1, raw=True)
+    with pytest.raises(ParameterError, match="torque off"):
+        bus.write(2, "return_delay_time", 10, raw=True)
+    assert bus.read(2, "return_delay_time", raw=True) == 0
+    # the servo itself refuses too (Access Error) when the guard is bypassed
+    with pytest.raises(ServoStatusError, match="access error"):
+        bus.write_raw(2, 9, b"\x0a")
+    bus.write(2, "torque_enable", 0, raw=True)
+    bus.write(2, "return_delay_time", 10, raw=True)
+    assert bus.read(2, "return_delay_time", raw=True) == 10
+
+
+def test_servo_range_errors_come_back_as_status_errors(bus):
+    with pytest.raises(ServoStatusError, match="data range error"):
+        bus.write_raw(1, 68, b"\x07")  # Status Return Level 7 bypassing the driver's check
+
+
+def test_baud_the_servo_lacks():
+    with pytest.raises(ParameterError, match="XL330-M288-T has no 4500000 bps"):
+        baud_code(control_table("XL330-M288-T"), 4_500_000)
+    with pytest.raises(ParameterError, match="baud rate 12345"):
+        DynamixelBus("/dev/null", 12345)
+
+
+def test_missing_port_and_not_a_device(tmp_path):
+    with pytest.raises(PortError, match="does not exist"):
+        DynamixelBus(str(tmp_path / "ttyUSB9")).open()
+    f = tmp_path / "file"
+    f.write_text("")
+    with pytest.raises(PortError, match="not a serial device"):
+        DynamixelBus(str(f)).open()
+
+
+# --------------------------------------------------------------------------------- block transfers
+def test_sync_read_marks_only_the_missing_servo_stale(cat_bus, bus):
+    ids = list(range(1, 13))
+    cat_bus.remove_servo(5)
+    for fast in (False, True):
+        r = bus.sync_read(ids, 126, 10, fast=fast)
+        assert r.stale == [5]
+        assert all(r.data[i] is not None and len(r.data[i]) == 10 for i in ids if i != 5)
+    assert bus.stats[5].timeouts >= 2 and bus.stats[5].retries >= 1
+    with pytest.raises(NoReplyError, match="servo 5"):
+        bus.read(5, "present_position")
+    cat_bus.restore_servo(5)
+    assert bus.sync_read(ids, 126, 10).stale == []
+
+
+def test_bulk_read_mixed_items(bus):
+    r = bus.bulk_read({1: (0, 2), 2: (132, 4), 3: (7, 1)})
+    assert int.from_bytes(r.data[1], "little") == 1200
+    assert r.data[3] == bytes((3,))
+
+
+def test_stuck_busy_flag_is_recovered(bus):
+    bus._port.is_using = True  # what the SDK leaves behind after an interrupted transaction
+    assert bus.read(1, "id", raw=True) == 1
+    assert bus.busy_recoveries == 1
+
+
+# --------------------------------------------------------------------------------- scan
+def test_scan_finds_exactly_the_configured_servos_at_their_baud_rates():
+    servos = [VirtualServo("XL330-M288-T", 1, 57600), VirtualServo("XL330-M288-T", 7, 1_000_000),
+              VirtualServo("XM430-W350-T", 12, 1_000_000), VirtualServo("XL430-W250-T", 40, 2_000_000)]
+    with VirtualBus(servos) as vb, DynamixelBus(vb.port, BAUD) as b:
+        found = b.scan(bauds=[57600, 1_000_000, 2_000_000])
+        assert sorted((f.id, f.baud, f.model) for f in found) == [
+            (1, 57600, "XL330-M288-T"), (7, 1_000_000, "XL330-M288-T"), (12, 1_000_000, "XM430-W350-T"),
+            (40, 2_000_000, "XL430-W250-T")]
+        assert b.baud == BAUD
+        by_id = b.scan(ids=[1, 2, 7], bauds=[57600, 1_000_000])
+        assert sorted((f.id, f.baud) for f in by_id) == [(1, 57600), (7, 1_000_000)]
+
+
+# --------------------------------------------------------------------------------- faults
+def test_corrupted_replies_never_yield_wrong_numbers(cat_bus, bus):
+    cat_bus.faults.corrupt = 0.3
+    good = bad = 0
+    for _ in range(60):
+        try:
+            assert bus.read(1, "model_number", raw=True) == 1200
+            good += 1
+        except (CorruptReplyError, NoReplyError):
+            bad += 1
+    assert good > 20
+    assert bus.stats[1].corrupt + bus.stats[1].timeouts > 0
+    r = bus.sync_read(list(range(1, 13)), 0, 2)
+    for d in r.data.values():
+        assert d is None or int.from_bytes(d, "little") in (1200, 1020)
+
+
+def test_dropped_replies_are_retried(cat_bus, bus):
+    cat_bus.faults.drop = 0.3
+    ok = sum(1 for _ in range(40) if bus.try_ping(1, retries=3) is not None)
+    assert ok >= 35
+    assert bus.stats[1].retries > 0
+
+
+def test_delay_past_the_timeout_is_a_timeout(cat_bus, bus):
+    cat_bus.faults.delay_ms = 40.0
+    t0 = time.perf_counter()
+    with pytest.raises(NoReplyError):
+        bus.ping(1, retries=0)
+    assert time.perf_counter() - t0 < 0.1
+    cat_bus.faults.delay_ms = 2.0
+    assert bus.ping(1).model == "XL330-M288-T"
+
+
+# --------------------------------------------------------------------------------- DynamixelRobot
+def _robot(vb, **kw) -> DynamixelRobot:
+    return DynamixelRobot(load_spec("cat"), vb.port, BAUD, **kw)
+
+
+def test_robot_arms_without_a_jump_and_reads_si(cat_bus):
+    with _robot(cat_bus) as robot:
+        s0 = robot.read()
+        assert s0.q.shape == (12,) and np.allclose(s0.q, 0.0, atol=0.01)
+        robot.arm()
+        spec = robot.spec
+        b = DynamixelBus(cat_bus.port, BAUD).open()
+        try:
+            goals = [b.read(j.servo_id, "goal_position", raw=True) for j in spec.joints]
+            present = [b.read(j.servo_id, "present_position", raw=True) for j in spec.joints]
+            assert goals == present
+            q = spec.pose("stand")
+            robot.write(Command(q=q))
+            time.sleep(0.4)
+            assert np.allclose(robot.read().q, q, atol=0.02)
+        finally:
+            b.close()
+    b = DynamixelBus(cat_bus.port, BAUD).open()
+    assert [b.read(i, "torque_enable", raw=True) for i in range(1, 13)] == [0] * 12  # off after close
+    b.close()
+
+
+def test_robot_connect_names_missing_servos(cat_bus):
+    cat_bus.remove_servo(3)
+    with pytest.raises(CommError, match=r"\(ID 3\)"), _robot(cat_bus):
+        pass
+
+
+def test_removed_servo_is_stale_then_the_watchdog_disarms(cat_bus):
+    with _robot(cat_bus) as robot:
+        from felis.controllers import PoseController
+
+        ticks = iter(range(1, 10_000))
+
+        def remove_later(state, command):
+            if next(ticks) == 5:
+                cat_bus.remove_servo(4)
+
+        rep = run_loop(robot, PoseController("hold"), duration=1.0, rate_hz=50, clock="wall",
+                       monitors=[remove_later])
+        assert rep.stopped.startswith("watchdog") and "stale" in rep.stopped and not rep.ok
+        assert rep.stale_ticks >= 4
+        assert robot.lifecycle is Lifecycle.CONNECTED
+    b = DynamixelBus(cat_bus.port, BAUD).open()
+    assert [b.read(i, "torque_enable", raw=True) for i in range(1, 13) if i != 4] == [0] * 11
+    b.close()
+
+
+def test_hardware_error_stops_the_run_and_names_the_joint(cat_bus):
+    from felis.controllers import PoseController
+
+    with _robot(cat_bus, hardware_poll_s=0.0) as robot:
+
+        ticks = iter(range(1, 10_000))
+
+        def trip(state, command):
+            if next(ticks) == 3:
+                cat_bus.raise_hardware_error(6, ["overload"])
+
+        rep = run_loop(robot, PoseController("hold"), duration=1.0, rate_hz=50, clock="wall", monitors=[trip])
+        name = robot.spec.joints[robot.ids.index(6)].name
+        assert rep.stopped.startswith("hardware error") and f"{name} (ID 6) overload" in rep.stopped
+        # a shut-down servo refuses torque: arming names it
+        with pytest.raises(CommError, match=r"\(ID 6\).*overload"):
+            robot.arm()
+
+
+def test_closed_port_ends_the_run_without_a_crash(cat_bus):
+    from felis.controllers import PoseController
+
+    with _robot(cat_bus) as robot:
+
+        ticks = iter(range(1, 10_000))
+
+        def pull_plug(state, command):
+            if next(ticks) == 5:
+                cat_bus.close_port()
+
+        rep = run_loop(robot, PoseController("hold"), duration=1.0, rate_hz=50, clock="wall", monitors=[pull_plug])
+        assert rep.stopped.startswith("comm lost") and not rep.ok
+    assert not robot.bus.is_open  # nothing left holding the port
+
+
+def test_one_percent_drops_only_make_stale_ticks(cat_bus):
+    cat_bus.faults.drop = 0.01
+    with _robot(cat_bus) as robot:
+        robot.arm()
+        stale = 0
+        for _ in range(300):
+            s = robot.read()
+            stale += bool(s.faults.stale.any())
+            robot.write(Command(q=s.q))
+        assert stale < 30
+
+
+# --------------------------------------------------------------------------------- fuzz: arbitrary replies
+class _Responder:
+    """A raw pty 'servo' that answers every request with the next scripted bytes."""
+
+    def __init__(self):
+        self.master, self.slave = os.openpty()
+        import tty
+
+        tty.setraw(self.slave)
+        self.port = os.ttyname(self.slave)
+        self.reply = b""
+        self._stop = False
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+
+    def _run(self):
+        while not self._stop:
+            r, _, _ = select.select([self.master], [], [], 0.05)
+            if r:
+                try:
+                    os.read(self.master, 4096)
+                except OSError:
+                    return
+                if self.reply:
+                    os.write(self.master, self.reply)
+
+    def close(self):
+        self._stop = True
+        self._t.join()
+        os.close(self.master)
+        os.close(self.slave)
+
+
+@pytest.fixture(scope="module")
+def responder():
+    r = _Responder()
+    yield r
+    r.close()
+
+
+def _valid_reply(dxl_id: int, data: bytes) -> bytes:
+    return P.status(dxl_id, 0, data)
+
+
+reply_strategy = st.one_of(
+    st.binary(max_size=40),
+    st.builds(lambda d, flips: _mutate(_valid_reply(1, d), flips), st.binary(min_size=0, max_size=6),
+              st.lists(st.tuples(st.integers(0, 30), st.integers(0, 255)), max_size=3)),
+    st.builds(lambda d, cut: _valid_reply(1, d)[:cut], st.binary(max_size=6), st.integers(0, 16)),
+)
+
+
+def _mutate(pkt: bytes, flips) -> bytes:
+    b = bytearray(pkt)
+    for pos, val in flips:
+        if b:
+            b[pos % len(b)] = val
+    return bytes(b)
+
+
+DOCUMENTED = (NoReplyError, CorruptReplyError, ServoStatusError, ParameterError)
+
+
+def _fuzz_once(responder, reply: bytes) -> None:
+    responder.reply = reply
+    b = DynamixelBus(responder.port, BAUD, retries=0, timeout_margin_ms=3.0)
+    b.register(1, "XL330-M288-T")
+    b.open()
+    try:
+        for op in (lambda: b.read(1, "present_position", raw=True), lambda: b.ping(1),
+                   lambda: b.sync_read([1, 2], 132, 4, fast=False), lambda: b.sync_read([1, 2], 132, 4, fast=True)):
+            try:
+                v = op()
+            except DOCUMENTED:
+                continue
+            if isinstance(v, int):  # a number only from a reply that really is a valid status from servo 1
+                pkts = P.PacketReader().feed(reply)
+                assert any(p.id == 1 and p.crc_ok and p.inst == P.STATUS and len(p.params) >= 4 for p in pkts)
+        assert not b._port.is_using
+    finally:
+        b.close()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(reply=reply_strategy)
+def test_fuzz_driver_against_arbitrary_replies(responder, reply):
+    _fuzz_once(responder, reply)
+
+
+@pytest.mark.slow
+@settings(max_examples=5000, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(reply=reply_strategy)
+def test_fuzz_driver_against_arbitrary_replies_long(responder, reply):
+    _fuzz_once(responder, reply)
+
+
+def test_safety_config_default_stops_on_hardware_error():
+    assert SafetyConfig().stop_on_hardware_error
+
+
+def test_velocity_limits_ride_in_the_goal_write_and_are_reset(cat_bus):
+    with _robot(cat_bus) as robot:
+        robot.arm()
+        q = robot.read().q
+        robot.write(Command(q=q, dq_max=np.full(12, 2.0)))
+        with DynamixelBus(cat_bus.port, BAUD) as b:
+            assert b.read(1, "profile_velocity") == pytest.approx(2.0, rel=0.02)
+            robot.write(Command(q=q))
+            assert b.read(1, "profile_velocity", raw=True) == 0
+
+
+def test_return_delay_warning_names_the_fix(cat_bus):
+    cat_bus.servo(7).set("return_delay_time", 250)  # factory setting: 500 µs per reply
+    with _robot(cat_bus) as robot:
+        assert any("servo 7" in w and "500 µs" in w and "return_delay_time 0" in w for w in robot.warnings)
