@@ -23,6 +23,7 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/sim_speed.py
+	$(PY) bench/bus_loop.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
