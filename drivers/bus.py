@@ -590,22 +590,7 @@ class DynamixelBus:
             if res != sdk.COMM_SUCCESS:
                 return {}, res
             port.setPacketTimeoutMillis(self._timeout_ms(14 + n, n * reply_len, n))
-            got: dict[int, tuple[int, bytes]] = {}
-            pending = set(ids)
-            for _ in range(3 * n):
-                pkt, res = ph.rxPacket(port, False)
-                if res == sdk.COMM_RX_TIMEOUT:
-                    break
-                if res != sdk.COMM_SUCCESS:
-                    continue  # corrupt: its servo stays pending
-                i = pkt[P_ID]
-                d = _params(pkt)
-                if i in pending and len(d) >= length:
-                    got[i] = (pkt[8], bytes(d[:length]))
-                    pending.discard(i)
-                    if not pending:
-                        break
-            return got, sdk.COMM_SUCCESS
+            return self._collect({i: length for i in ids}), sdk.COMM_SUCCESS
 
         with self._lock:
             self.transactions += 1
@@ -645,6 +630,28 @@ class DynamixelBus:
         self._account(ids, got)
         return got
 
+    def _collect(self, lengths: dict[int, int]) -> dict[int, tuple[int, bytes]]:
+        """Receive one status per servo until all answered or the timeout passed; match by ID.
+
+        Returns {id: (error byte, data)}; a corrupt packet leaves its servo pending."""
+        port, ph = self._port, self._ph
+        got: dict[int, tuple[int, bytes]] = {}
+        pending = set(lengths)
+        for _ in range(3 * len(lengths)):
+            pkt, res = ph.rxPacket(port, False)
+            if res == sdk.COMM_RX_TIMEOUT:
+                break
+            if res != sdk.COMM_SUCCESS:
+                continue
+            i = pkt[P_ID]
+            d = _params(pkt)
+            if i in pending and len(d) >= lengths[i]:
+                got[i] = (pkt[8], bytes(d[: lengths[i]]))
+                pending.discard(i)
+                if not pending:
+                    break
+        return got
+
     def _account(self, ids: list[int], got: dict[int, tuple[int, bytes]]) -> None:
         for i in ids:
             st = self._stats(i)
@@ -673,22 +680,7 @@ class DynamixelBus:
             if res != sdk.COMM_SUCCESS:
                 return {}, res
             port.setPacketTimeoutMillis(self._timeout_ms(10 + len(param), rx, len(reads)))
-            got: dict[int, tuple[int, bytes]] = {}
-            pending = set(reads)
-            for _ in range(3 * len(reads)):
-                pkt, res = ph.rxPacket(port, False)
-                if res == sdk.COMM_RX_TIMEOUT:
-                    break
-                if res != sdk.COMM_SUCCESS:
-                    continue
-                i = pkt[P_ID]
-                d = _params(pkt)
-                if i in pending and len(d) >= reads[i][1]:
-                    got[i] = (pkt[8], bytes(d[: reads[i][1]]))
-                    pending.discard(i)
-                    if not pending:
-                        break
-            return got, sdk.COMM_SUCCESS
+            return self._collect({i: ln for i, (_, ln) in reads.items()}), sdk.COMM_SUCCESS
 
         with self._lock:
             self.transactions += 1
