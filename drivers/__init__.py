@@ -8,6 +8,6 @@ Encoder ticks exist only inside this package; everything it hands upward is SI a
     protocol.py       CRC-16, byte stuffing, packet building and incremental parsing
     bus.py            DynamixelBus: ping, scan, read/write by name, sync/fast-sync/bulk, retries, guards
     virtual.py        VirtualServo, VirtualBus (pty server, faults, wire time, MuJoCo backing), spawn()
-    imu.py            RVC frame codec and parser, ImuReader, RvcEmulator
+    imu.py            RVC frame codec and parser, ImuReader, RvcEmulator, apply_mounting, SensorMount
     robot.py          DynamixelRobot: the HAL on a bus (+ IMU)
 """

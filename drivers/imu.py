@@ -58,6 +58,13 @@ with q_cur = q_prev ⊗ Δq, the increment Δq = q_prev⁻¹ ⊗ q_cur is expres
 USB-serial adapters deliver bytes in bursts (an FTDI latency timer is 16 ms by default), so receive
 times jitter by more than the 10 ms between samples. The 0.01° quantisation of the angles gives a
 rate noise of roughly 0.01°·√2 / 10 ms ≈ 0.025 rad/s.
+
+Mounting
+--------
+The sensor sits in the robot's body at a rotation q_bs and its orientation drifts, so a still sensor
+reports a constant rate (the bias). `apply_mounting` turns a sensor-frame reading into the body frame
+and removes the bias (`DynamixelRobot` applies the calibration's values to every reading; they are
+estimated by `felis.calib.imu.estimate_mounting`); `SensorMount` does the opposite for emulators.
 """
 
 from __future__ import annotations
@@ -156,6 +163,104 @@ def body_rate(q_prev: np.ndarray, q_cur: np.ndarray, dt: float) -> np.ndarray:
     if sin_half < 1e-12:
         return 2 * v / dt
     return v * (2 * math.atan2(sin_half, dq[0]) / sin_half / dt)
+
+
+def quat_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation vector (axis × angle, rad)."""
+    v = np.asarray(rotvec, dtype=float)
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-12:
+        return np.array([1.0, *(v / 2)])
+    return np.array([math.cos(angle / 2), *(v * (math.sin(angle / 2) / angle))])
+
+
+def quat_log(q: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis × angle, rad, angle ≤ π) of a unit quaternion; inverse of `quat_exp`."""
+    q = np.asarray(q, dtype=float)
+    if q[0] < 0:
+        q = -q
+    v = q[1:]
+    sin_half = float(np.linalg.norm(v))
+    if sin_half < 1e-12:
+        return 2 * v
+    return v * (2 * math.atan2(sin_half, q[0]) / sin_half)
+
+
+def quat_matrix(q: np.ndarray) -> np.ndarray:
+    """3×3 rotation matrix R(q) of a (w, x, y, z) quaternion (normalised first): R·v = `quat_rotate`(q, v)."""
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+# --- mounting --------------------------------------------------------------------------------------
+
+
+def apply_mounting(imu: Imu, rotation: np.ndarray | None = None, bias: np.ndarray | None = None) -> Imu:
+    """A sensor-frame reading expressed in the body frame, gyro bias removed (a pure function).
+
+    ``rotation`` q_bs is the sensor's orientation in the body frame (w, x, y, z; None = identity),
+    ``bias`` b the rate the sensor reports at rest (rad/s, sensor frame; None = zero), as estimated by
+    `felis.calib.imu.estimate_mounting`::
+
+        q_wb = q_ws ⊗ q_bs⁻¹        gyro_b = R(q_bs)·(gyro_s − b)        accel_b = R(q_bs)·accel_s
+
+    The world frame stays the sensor's own reference (z up, yaw zero at power-up); only the body is
+    swapped for the sensor. With a yaw-free q_bs (what a level-pose estimate gives) a level body
+    reports exactly the sensor's yaw: q_ws = qz(ψ) ⊗ q_bs gives q_wb = qz(ψ).
+    """
+    gyro = np.asarray(imu.gyro, dtype=float)
+    if bias is not None:
+        gyro = gyro - np.asarray(bias, dtype=float)
+    if rotation is None:
+        return Imu(quat=np.asarray(imu.quat, dtype=float).copy(), gyro=gyro.copy(),
+                   accel=np.asarray(imu.accel, dtype=float).copy())
+    q_bs = np.asarray(rotation, dtype=float)
+    q_bs = q_bs / np.linalg.norm(q_bs)
+    r = quat_matrix(q_bs)
+    q_wb = quat_mul(np.asarray(imu.quat, dtype=float), quat_conj(q_bs))
+    return Imu(quat=q_wb / np.linalg.norm(q_wb), gyro=r @ gyro, accel=r @ np.asarray(imu.accel, dtype=float))
+
+
+class SensorMount:
+    """What a sensor mounted at q_bs in a body reports, its orientation drifting at a constant rate (emulators).
+
+    Each `sample` call is one sensor sample, 1/rate_hz s after the previous one (the sample clock, as
+    `ImuReader` counts it)::
+
+        q_ws(k) = q_wb ⊗ q_bs ⊗ exp(ω_d·k/rate_hz)          accel_s = R(q_bs)ᵀ·accel_b
+
+    ``rotation``: q_bs (w, x, y, z), None = identity; ``drift``: ω_d, a constant sensor-frame rate
+    (rad/s, 3-vector) integrated into the reported orientation, None = none. A still body then shows
+    ω_d as a constant gyro offset in `ImuReader` (its rate is derived from consecutive orientations).
+    The accelerometer does not drift. ▸ All three axes drift: a real BNO08x holds roll and pitch to
+    gravity and drifts in heading, so this is the worse case for anything that trusts the orientation.
+    Raises ValueError on a rotation that is not a unit quaternion (±1e-3) or a non-finite drift.
+    """
+
+    def __init__(self, rotation: np.ndarray | None = None, drift: np.ndarray | None = None, *,
+                 rate_hz: float = RATE_HZ):
+        self.rotation = np.array([1.0, 0.0, 0.0, 0.0]) if rotation is None else np.asarray(rotation, dtype=float)
+        norm = float(np.linalg.norm(self.rotation)) if self.rotation.shape == (4,) else math.nan
+        if not math.isfinite(norm) or abs(norm - 1.0) > 1e-3:
+            raise ValueError(f"IMU mount must be a unit quaternion (w, x, y, z), got {self.rotation.tolist()}")
+        self.rotation = self.rotation / norm
+        self.drift = np.zeros(3) if drift is None else np.asarray(drift, dtype=float)
+        if self.drift.shape != (3,) or not np.all(np.isfinite(self.drift)):
+            raise ValueError(f"IMU drift must be 3 finite rates (rad/s), got {self.drift.tolist()}")
+        self.rate_hz = rate_hz
+        self.samples = 0
+        self._r_sb = quat_matrix(self.rotation).T
+        self.identity = bool(np.array_equal(self.rotation, [1.0, 0.0, 0.0, 0.0]) and not self.drift.any())
+
+    def sample(self, q_wb: np.ndarray, accel_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q_ws, accel_s) for the body's orientation and specific force; advances the drift one sample."""
+        k, self.samples = self.samples, self.samples + 1
+        if self.identity:
+            return q_wb, accel_b
+        q = quat_mul(quat_mul(q_wb, self.rotation), quat_exp(self.drift * (k / self.rate_hz)))
+        return q / np.linalg.norm(q), self._r_sb @ np.asarray(accel_b, dtype=float)
 
 
 # --- frames ----------------------------------------------------------------------------------------

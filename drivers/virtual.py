@@ -87,9 +87,18 @@ timesteps, at most 20 per iteration; a longer lag is skipped, not caught up, and
 copies Goal Position (through the mounting, below), the Torque Enable mask (always the full mask) and
 Profile Velocity (``dq_max``, None when all are 0; a 0 among others is unlimited) into a
 `felis.hal.Command` when any servo's memory changed, and copies the quantised q, dq and effort back
-into every servo's present items. Mounting, per joint::
+into every servo's present items. ``servo_params`` and ``fixed_base`` pass through to the model
+(`felis.sim.robot.MujocoRobot`: per-joint servo parameters, the robot hung on a stand). Mounting, per joint::
 
     θ = direction·q / m_per_rad + zero + mount_offset          (JointSpec fields; offset default 0)
+
+IMU (a robot whose description has one, e.g. the cat): a BNO08x in UART-RVC mode
+(`felis.drivers.imu.RvcEmulator`, 100 Hz) on ``bus.imu_port`` reports the model's IMU site (orientation
+q_wb, specific force accel_b). ▸ While the robot is held (before torque first comes on) it is still in
+the operator's hands: the accelerometer reads the reaction to gravity, accel_b = R(q_wb)ᵀ·(−g), not the
+free fall a forward pass of the start pose shows (the cat's feet start 1 mm above the floor).
+``imu_mount`` / ``imu_drift`` (`felis.drivers.imu.SensorMount`) simulate a mis-mounted sensor whose
+orientation drifts: q_ws = q_wb ⊗ q_bs ⊗ exp(ω_d·t), accel_s = R(q_bs)ᵀ·accel_b, t on the sample clock.
 
 Wire
 ----
@@ -97,8 +106,10 @@ The client's baud rate is read from the pty master (``TCGETS2``: the slave's c_o
 included; else ``tcgetattr`` and the standard B-constants; ▸ a rate that cannot be read counts as
 "unknown" and every servo answers). A servo only hears packets sent at its own baud rate, so a scan
 across rates finds each servo at its own. A partial packet followed by a 50 ms gap is discarded,
-as a servo's receiver does. ▸ In a SYNC_READ / BULK_READ the listed servos that are present answer
-in list order and a missing one is simply skipped (the SDK then times out on it); in a
+as a servo's receiver does. ▸ Servos that share an ID (factory-new ones: ID 1) answer in the same
+slot and collide: the line is a wired-AND of both with their start bits a byte apart, so the client
+gets one garbled packet (`_collide`), as on a real bus. ▸ In a SYNC_READ / BULK_READ the listed
+servos that are present answer in list order and a missing one is simply skipped (the SDK then times out on it); in a
 FAST_SYNC_READ / FAST_BULK_READ the header announces every listed servo, the present ones append
 their segments and a missing one leaves the packet short (the SDK reports COMM_RX_CORRUPT).
 SYNC_WRITE / BULK_WRITE with a malformed parameter block are ignored as a whole.
@@ -143,6 +154,7 @@ import time
 import tty
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from felis.drivers import protocol as P
 from felis.drivers.controltable import (
@@ -156,6 +168,9 @@ from felis.drivers.controltable import (
 from felis.errors import CommError, ParameterError
 from felis.servos import PWM_LIMIT, RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, SERVOS, TICKS_PER_REV
 from felis.spec import RobotSpec, load_spec
+
+if TYPE_CHECKING:
+    from felis.drivers.imu import SensorMount
 
 TAU_S = 0.05  # first-order time constant of the standalone horn
 GAP_S = 0.05  # inter-byte gap after which a partial packet is dropped
@@ -698,6 +713,7 @@ class VirtualServo:
             self._omega = self._torque = 0.0
         if addrs & _CACHED:
             self._cache_settings()
+            self._refresh()  # a new Homing Offset or Drive Mode shows in Present Position at once
         if ID in addrs:
             self.id = mem[ID]
 
@@ -723,7 +739,7 @@ def dispatch(servos: Sequence[VirtualServo], pkt: P.Packet) -> list[Reply]:
     read whose list names an absent servo gives a packet short of its announced length (module doc).
     """
     if pkt.id != P.BROADCAST_ID:
-        return [(s.return_delay_s, r) for s in servos if s.id == pkt.id and (r := s.direct(pkt)) is not None]
+        return _collide([(s.return_delay_s, r) for s in servos if s.id == pkt.id and (r := s.direct(pkt)) is not None])
     if not pkt.crc_ok:
         return []
     inst = pkt.inst
@@ -734,7 +750,28 @@ def dispatch(servos: Sequence[VirtualServo], pkt: P.Packet) -> list[Reply]:
         return []
     replies = [(s.id, s.return_delay_s, r) for s in servos if (r := s.direct(pkt)) is not None]
     replies.sort(key=lambda x: x[0])  # broadcast PING: ascending ID
-    return [(d, r) for _, d, r in replies]
+    out: list[Reply] = []
+    for _, same in itertools.groupby(replies, key=lambda x: x[0]):  # each ID answers in its own slot
+        out += _collide([(d, r) for _, d, r in same])
+    return out
+
+
+def _collide(replies: list[Reply]) -> list[Reply]:
+    """Servos sharing an ID answer in the same slot and drive the wire at once.
+
+    The half-duplex line reads low while any transmitter drives it low (wired-AND); their start bits
+    are modelled one byte apart, so the client receives ``a[k] & b[k−1]``: a garbled packet whose CRC
+    fails, as on a real bus with two servos on one ID. One reply passes unchanged.
+    """
+    if len(replies) < 2:
+        return replies
+    data = bytearray(replies[0][1])
+    for skew, (_, r) in enumerate(replies[1:], start=1):
+        shifted = b"\xff" * skew + r
+        data += b"\xff" * max(0, len(shifted) - len(data))
+        for k, byte in enumerate(shifted):
+            data[k] &= byte
+    return [(replies[0][0], bytes(data))]
 
 
 def _group_read(servos: Sequence[VirtualServo], pkt: P.Packet) -> list[Reply]:
@@ -994,16 +1031,28 @@ class VirtualBus:
         raise ParameterError(f"virtual bus has no servo with ID {dxl_id}; IDs: "
                              f"{', '.join(str(s.id) for s in self._servos) or 'none'}")
 
-    def remove_servo(self, dxl_id: int) -> None:
-        """The servo vanishes from the bus: it neither hears nor answers until `restore_servo`."""
+    def remove_servo(self, dxl_id: int | VirtualServo) -> None:
+        """The servo vanishes from the bus (unplugged): it neither hears nor answers until `restore_servo`.
+
+        Takes an ID or the `VirtualServo` itself (needed when several servos share an ID, as factory-new
+        ones do).
+        """
         with self.lock:
-            self._removed.add(id(self.servo(dxl_id)))
+            self._removed.add(id(self._find(dxl_id)))
             self._relist()
 
-    def restore_servo(self, dxl_id: int) -> None:
+    def restore_servo(self, dxl_id: int | VirtualServo) -> None:
+        """Plug a removed servo back in (by ID or the `VirtualServo` itself)."""
         with self.lock:
-            self._removed.discard(id(self.servo(dxl_id)))
+            self._removed.discard(id(self._find(dxl_id)))
             self._relist()
+
+    def _find(self, servo: int | VirtualServo) -> VirtualServo:
+        if isinstance(servo, VirtualServo):
+            if not any(s is servo for s in self._servos):
+                raise ParameterError(f"{servo!r} is not on this virtual bus")
+            return servo
+        return self.servo(servo)
 
     def raise_hardware_error(self, dxl_id: int, bits_or_names: int | str | Iterable[str | int]) -> None:
         """Set Hardware Error Status bits on a servo (``"overload"``, ``["overheating", "overload"]``, 0x20)."""
@@ -1244,13 +1293,36 @@ class VirtualBus:
     @classmethod
     def for_robot(cls, spec_or_name: RobotSpec | str, *, baud: int = 1_000_000, sim: bool = False,
                   wire_time: bool = False, faults: Faults | str | None = None, seed: int = 0,
-                  mount_offsets: Mapping[str, float] | None = None) -> VirtualBus:
+                  mount_offsets: Mapping[str, float] | None = None,
+                  servo_params: Mapping[str, object] | None = None, fixed_base: bool = False,
+                  imu_mount: Sequence[float] | None = None, imu_drift: Sequence[float] | None = None) -> VirtualBus:
         """One servo per joint of a robot description (ID, model and mounting from it), at ``baud``,
-        Return Delay Time 0, position limits at factory values. ``sim=True`` backs the servos with the
+        Return Delay Time 0, Min/Max Position Limit at the description's joint limits (as `felis check-eeprom`
+        expects of a set-up robot). ``sim=True`` backs the servos with the
         MuJoCo model (and starts the cat's IMU on ``bus.imu_port`` when started).
-        ``mount_offsets`` (joint -> rad) simulates an uncalibrated assembly.
+        ``mount_offsets`` (joint -> rad) simulates an uncalibrated assembly. With ``sim=True``,
+        ``servo_params`` (joint -> `felis.sim.servo.ServoParams`) replaces the datasheet servo model of
+        those joints (e.g. deliberately wrong parameters for a system-identification test) and
+        ``fixed_base`` hangs a floating-base robot on a stand (`felis.sim.robot.MujocoRobot`).
+        ``imu_mount`` (unit quaternion w, x, y, z: the sensor in the body frame) and ``imu_drift``
+        (sensor-frame rad/s, 3-vector) simulate a mis-mounted, drifting IMU (module doc; needs sim=True
+        and a robot with an IMU).
         """
         spec = spec_or_name if isinstance(spec_or_name, RobotSpec) else load_spec(spec_or_name)
+        if (servo_params or fixed_base) and not sim:
+            raise ParameterError("servo parameters and a fixed base apply to the simulation: they need sim=True "
+                                 "(--sim)")
+        imu_mount_model = None
+        if imu_mount is not None or imu_drift is not None:
+            if not sim or spec.sensors.imu is None:
+                raise ParameterError("an IMU mount or drift needs the simulated IMU: sim=True (--sim) and a robot "
+                                     f"with an IMU ({spec.name} {'has one' if spec.sensors.imu else 'has none'})")
+            from felis.drivers.imu import SensorMount
+
+            try:
+                imu_mount_model = SensorMount(imu_mount, imu_drift)
+            except ValueError as e:
+                raise ParameterError(str(e)) from None
         offsets = dict(mount_offsets or {})
         unknown = sorted(set(offsets) - set(spec.names))
         if unknown:
@@ -1260,6 +1332,10 @@ class VirtualBus:
             mount = Mount(j.direction, j.zero, j.m_per_rad, float(offsets.get(j.name, 0.0)))
             s = VirtualServo(j.servo, j.servo_id, baud, mount=mount)
             s.set("return_delay_time", 0)
+            limits = sorted(CENTRE + round(Mount(j.direction, j.zero, j.m_per_rad).horn(q) / RAD_PER_TICK)
+                            for q in (j.lower, j.upper))  # as a set-up robot holds them (felis check-eeprom)
+            s.set("min_position_limit", max(0, limits[0]))
+            s.set("max_position_limit", min(4095, limits[1]))
             s.angle = mount.horn(min(max(0.0, j.lower), j.upper))
             s.set("goal_position", s.get("present_position"))
             servos.append(s)
@@ -1267,7 +1343,8 @@ class VirtualBus:
         bus.spec = spec
         if sim:
             try:
-                bus.sim = _SimBackend(bus, spec, servos)
+                bus.sim = _SimBackend(bus, spec, servos, servo_params=servo_params, fixed_base=fixed_base,
+                                      imu_mount=imu_mount_model)
             except BaseException:
                 bus.stop()
                 raise
@@ -1280,21 +1357,28 @@ class _SimBackend:
 
     MAX_STEPS = 20
 
-    def __init__(self, bus: VirtualBus, spec: RobotSpec, servos: list[VirtualServo]):
+    def __init__(self, bus: VirtualBus, spec: RobotSpec, servos: list[VirtualServo], *,
+                 servo_params: Mapping[str, object] | None = None, fixed_base: bool = False,
+                 imu_mount: SensorMount | None = None):
         import numpy as np
 
+        from felis.drivers.imu import SensorMount, quat_conj, quat_rotate
         from felis.hal import Command
         from felis.sim.robot import MujocoRobot
 
         self._np, self._Command = np, Command
         self.bus, self.spec, self.servos = bus, spec, servos
-        self.robot = MujocoRobot(spec)
+        self.robot = MujocoRobot(spec, servo=dict(servo_params or {}), fixed_base=fixed_base)
         self.robot.connect()
         self.robot.arm()
         self.dt = float(self.robot.model.opt.timestep)
         self.mounts = [s.mount for s in servos]
         self._revisions: tuple[int, ...] = ()
         self.imu: tuple | None = None
+        self.imu_mount = imu_mount or SensorMount()
+        self._held = True  # physics waits until torque first comes on (`_run`)
+        self._reaction = -np.asarray(self.robot.model.opt.gravity, dtype=float)  # specific force at rest, world
+        self._quat_conj, self._quat_rotate = quat_conj, quat_rotate
         self._stop = threading.Event()
         for s in servos:
             s.external = True
@@ -1326,8 +1410,25 @@ class _SimBackend:
             self.robot.close()
 
     def _imu_sample(self):
+        """The IMU site's (quat, accel) as the sensor reports it: held still, mounted, drifting (module doc)."""
         with self.bus.lock:
-            return self.imu
+            quat, accel = self.imu
+            held = self._held
+        if held:  # still in the operator's hands: the accelerometer reads the reaction to gravity
+            accel = self._quat_rotate(self._quat_conj(quat), self._reaction)
+        return self.imu_mount.sample(quat, accel)
+
+    def pose(self, q) -> None:
+        """The operator's hands on the simulated robot: joints to ``q`` (rad/m, description order), at rest.
+
+        For calibration by hand while torque is off: physics has not started (it waits for the first
+        torque enable) or the joints are unpowered. The servos then read the new angles.
+        """
+        from felis.sim.scenarios import set_pose
+
+        with self.bus.lock:
+            set_pose(self.robot, q)
+            self._publish(self.robot.read())
 
     def _sync_command(self) -> None:
         """Servo memory → Command, when any servo changed (called with the bus lock held)."""
@@ -1367,6 +1468,7 @@ class _SimBackend:
         while not self._stop.is_set():
             with lock:
                 if any(s.torque_enabled for s in self.servos):
+                    self._held = False
                     break
             self._stop.wait(dt)
         t0 = time.perf_counter()
@@ -1489,11 +1591,36 @@ class VirtualBusProcess:
 
 
 def spawn(robot: str, *, sim: bool = False, baud: int = 1_000_000, wire_time: bool = False,
-          faults: str | None = None, seed: int = 0, timeout: float = 20.0) -> VirtualBusProcess:
-    """Run ``felis virtual-bus`` for ``robot`` in a child process; raises CommError if it does not come up."""
+          faults: str | None = None, seed: int = 0, timeout: float = 20.0,
+          servo_params: str | os.PathLike | None = None, fixed_base: bool = False,
+          imu_mount: Sequence[float] | None = None, imu_drift: Sequence[float] | None = None) -> VirtualBusProcess:
+    """Run ``felis virtual-bus`` for ``robot`` in a child process; raises CommError if it does not come up.
+
+    ``servo_params`` (a servo parameter file, `felis.sim.servo_file`) and ``fixed_base`` apply to the
+    simulation (``sim=True``); so do ``imu_mount`` (unit quaternion w, x, y, z, passed on as
+    ``--imu-mount-deg`` roll, pitch, yaw) and ``imu_drift`` (rad/s), as in `VirtualBus.for_robot`.
+    """
     args = ["--robot", str(robot), "--baud", str(baud), "--seed", str(seed)]
     if sim:
         args.append("--sim")
+    if servo_params is not None:
+        args += ["--servo-params", os.fspath(servo_params)]
+    if fixed_base:
+        args.append("--fixed-base")
+    if imu_mount is not None or imu_drift is not None:
+        from felis.drivers.imu import SensorMount
+
+        try:  # fail here, with its message, rather than in the child
+            SensorMount(imu_mount, imu_drift)
+        except ValueError as e:
+            raise ParameterError(str(e)) from None
+    if imu_mount is not None:
+        from felis.drivers.imu import rvc_from_quat
+
+        yaw, pitch, roll = rvc_from_quat(imu_mount)
+        args.append("--imu-mount-deg=" + ",".join(f"{math.degrees(a):.12g}" for a in (roll, pitch, yaw)))
+    if imu_drift is not None:
+        args.append("--imu-drift=" + ",".join(repr(float(v)) for v in imu_drift))
     if wire_time:
         args.append("--wire-time")
     if faults:

@@ -9,6 +9,8 @@ Torque off (connected, or ``Command.torque`` False) zeroes the actuator's gain a
 is then moved only by gravity, contacts, back-EMF damping and friction, like an unpowered servo.
 Readings are quantised like the servo's (4096 ticks per turn, 0.229 rpm), ``effort`` is the motor
 torque (actuator force minus back-EMF), ``height`` is the waist site's height above the floor.
+``fixed_base=True`` hangs a floating-base robot on a stand (free joint removed, body lifted), as for
+system identification (`felis.calib.sysid`).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from felis.spec import RobotSpec
 
 MODELS_DIR = resources.files("felis.sim") / "models"
 TOUCH_THRESHOLD_N = 1e-3
+STAND_LIFT_M = 0.25  # fixed base: the root body is lifted this much above its MJCF pose (the stand)
 
 
 class ModelMismatch(FelisError):
@@ -41,6 +44,41 @@ def model_path(spec: RobotSpec) -> Path:
     return path
 
 
+def load_model(path: str | Path, fixed_base: bool = False) -> mujoco.MjModel:
+    """Compile an MJCF file; ``fixed_base`` removes free joints and lifts their bodies by ``STAND_LIFT_M``.
+
+    Keyframes lose the removed joints' 7 qpos / 6 qvel entries (the body stays where the MJCF puts it,
+    lifted). Errors are `ModelMismatch` with MuJoCo's first line.
+    """
+    path = Path(path)
+    try:
+        if not fixed_base:
+            return mujoco.MjModel.from_xml_path(str(path))
+        spec = mujoco.MjSpec.from_file(str(path))
+        free = [j for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_FREE]
+        if free:
+            before = spec.compile()
+            drop_q, drop_v = [], []
+            for j in free:
+                jid = mujoco.mj_name2id(before, mujoco.mjtObj.mjOBJ_JOINT, j.name) if j.name else -1
+                if jid >= 0:
+                    drop_q += range(before.jnt_qposadr[jid], before.jnt_qposadr[jid] + 7)
+                    drop_v += range(before.jnt_dofadr[jid], before.jnt_dofadr[jid] + 6)
+            for k in spec.keys:
+                if len(k.qpos) == before.nq:
+                    k.qpos = np.delete(np.asarray(k.qpos), drop_q)
+                if len(k.qvel) == before.nv:
+                    k.qvel = np.delete(np.asarray(k.qvel), drop_v)
+            for j in free:
+                body = j.parent
+                spec.delete(j)
+                body.pos = np.asarray(body.pos) + (0.0, 0.0, STAND_LIFT_M)
+        return spec.compile()
+    except ValueError as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else "cannot load"
+        raise ModelMismatch(f"{path}: {first}") from None
+
+
 class MujocoRobot(RobotBase):
     """Simulated robot.
 
@@ -50,11 +88,15 @@ class MujocoRobot(RobotBase):
         servo: per-joint `ServoParams` overriding the datasheet model (e.g. from system
             identification); joints not named keep the datasheet values.
         quantize: report positions/velocities in encoder resolution, as a real servo does.
+        fixed_base: weld a floating-base robot to the world (its free joint removed at load), with
+            its root body lifted by ``STAND_LIFT_M``: the robot hangs on a stand, legs clear of the
+            floor, as for system identification. No effect on a fixed-base model.
     """
 
     def __init__(self, spec: RobotSpec, model: str | Path | None = None,
-                 servo: dict[str, ServoParams] | None = None, quantize: bool = True):
+                 servo: dict[str, ServoParams] | None = None, quantize: bool = True, fixed_base: bool = False):
         super().__init__(spec)
+        self.fixed_base = fixed_base
         self._model_file = Path(model) if model is not None else model_path(spec)
         self._servo_override = dict(servo or {})
         unknown = set(self._servo_override) - set(spec.names)
@@ -70,11 +112,7 @@ class MujocoRobot(RobotBase):
 
     # ------------------------------------------------------------------ connect / model checks
     def _connect(self) -> None:
-        try:
-            m = mujoco.MjModel.from_xml_path(str(self._model_file))
-        except ValueError as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else "cannot load"
-            raise ModelMismatch(f"{self._model_file}: {first}") from None
+        m = load_model(self._model_file, fixed_base=self.fixed_base)
         spec = self.spec
         self.model, self.data = m, mujoco.MjData(m)
         n = spec.n

@@ -3,6 +3,7 @@
 ::
 
     felis virtual-bus --robot cat|arm|FILE.toml [--sim] [--baud B] [--faults SPEC] [--wire-time] [--seed S]
+                      [--servo-params FILE] [--fixed-base] [--imu-mount-deg R,P,Y] [--imu-drift X,Y,Z]
 
 Output contract (what `felis.drivers.virtual.spawn` and scripts rely on): the FIRST line of stdout is
 ``port: <device path>``, then ``imu: <device path>`` when the robot has an IMU and ``--sim`` backs it,
@@ -42,7 +43,33 @@ def register(sub, parser_class=None) -> None:
     p.add_argument("--wire-time", action="store_true",
                    help="deliver replies when the wire would (baud rate, return delay)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fault injection (default 0)")
+    p.add_argument("--servo-params", metavar="FILE",
+                   help="with --sim: servo model parameters per joint (a `felis sysid` output file)")
+    p.add_argument("--fixed-base", action="store_true",
+                   help="with --sim: hang a floating-base robot on a stand (base held, legs free)")
+    p.add_argument("--imu-mount-deg", metavar="R,P,Y",
+                   help="with --sim: the IMU mounted rotated by roll, pitch, yaw degrees in the body "
+                   "(write --imu-mount-deg=-4,2,0 when the first value is negative)")
+    p.add_argument("--imu-drift", metavar="X,Y,Z",
+                   help="with --sim: the IMU's orientation drifts at this sensor-frame rate (rad/s)")
     p.set_defaults(func=cmd_virtual_bus)
+
+
+def _triple(option: str, text: str | None) -> tuple[float, float, float] | None:
+    """'a,b,c' -> three finite floats (None when the option is absent); ParameterError otherwise."""
+    if text is None:
+        return None
+    import math
+
+    from felis.errors import ParameterError
+
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ParameterError(f"{option} takes three comma-separated numbers (e.g. 6,-4,0), got {text!r}")
+    return values
 
 
 def summary(bus, args) -> str:
@@ -52,18 +79,50 @@ def summary(bus, args) -> str:
     ids = sorted(s.id for s in servos)
     id_text = f"{ids[0]}…{ids[-1]}" if ids == list(range(ids[0], ids[-1] + 1)) else ", ".join(map(str, ids))
     backing = "backed by MuJoCo" if args.sim else "standalone dynamics"
+    if getattr(args, "fixed_base", False):
+        backing += " (fixed base)"
+    if getattr(args, "servo_params", None):
+        backing += f" with servo parameters from {args.servo_params}"
+    if getattr(args, "imu_mount_deg", None):
+        backing += f", IMU mounted at roll,pitch,yaw {args.imu_mount_deg}°"
+    if getattr(args, "imu_drift", None):
+        backing += f", IMU drifting {args.imu_drift} rad/s"
     timing = "wire time modelled" if args.wire_time else "replies at once"
     faults = f"faults {args.faults}" if args.faults else "no faults"
     return (f"virtual bus: {bus.spec.name}, {len(servos)} × {'/'.join(models)} (IDs {id_text}) at {args.baud} bps, "
             f"{backing}, {timing}, {faults}; stop with Ctrl-C or SIGTERM")
 
 
+def _imu_options(args) -> dict:
+    """--imu-mount-deg / --imu-drift -> `VirtualBus.for_robot` keywords (the mount as a quaternion)."""
+    out = {}
+    mount = _triple("--imu-mount-deg", getattr(args, "imu_mount_deg", None))
+    if mount is not None:
+        import math
+
+        from felis.drivers.imu import quat_from_rvc
+
+        roll, pitch, yaw = (math.radians(v) for v in mount)
+        out["imu_mount"] = quat_from_rvc(yaw, pitch, roll)
+    drift = _triple("--imu-drift", getattr(args, "imu_drift", None))
+    if drift is not None:
+        out["imu_drift"] = drift
+    return out
+
+
 def cmd_virtual_bus(args) -> int:
     from felis.drivers.virtual import VirtualBus, parse_faults
 
     faults = parse_faults(args.faults) if args.faults else None
+    servo_params = None
+    if getattr(args, "servo_params", None):
+        from felis.sim.servo_file import load_servo_params
+        from felis.spec import load_spec
+
+        servo_params = load_servo_params(args.servo_params, load_spec(args.robot))
     bus = VirtualBus.for_robot(args.robot, baud=args.baud, sim=args.sim, wire_time=args.wire_time, faults=faults,
-                               seed=args.seed)
+                               seed=args.seed, servo_params=servo_params,
+                               fixed_base=getattr(args, "fixed_base", False), **_imu_options(args))
     done = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: done.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     sys.setswitchinterval(SWITCH_INTERVAL_S)
