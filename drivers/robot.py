@@ -34,7 +34,8 @@ import numpy as np
 
 from felis.drivers.bus import DynamixelBus, NoReplyError
 from felis.drivers.controltable import STATE_BLOCK, control_table
-from felis.errors import CommError, DescriptionError
+from felis.drivers.imu import apply_mounting
+from felis.errors import CalibrationError, CommError, DescriptionError
 from felis.hal import Command, Faults, Imu, RobotBase, State
 from felis.servos import RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, STALL_CURRENT_A, hardware_error_names, servo_model
 from felis.spec import RobotSpec
@@ -42,15 +43,26 @@ from felis.spec import RobotSpec
 _GOAL_BLOCK = (112, 8)  # Profile Velocity (4) + Goal Position (4)
 _GOAL = (116, 4)  # Goal Position alone
 _TORQUE_ENABLE = 64
+_HOMING_OFFSET = 20
 _BLOCK_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 
 
 @dataclass(frozen=True)
 class Calibration:
-    """Per-joint horn-frame correction: ``a = direction·(servo angle from the description) + offset``."""
+    """Host-side corrections from a calibration file (`felis.calib.calfile.CalibrationFile.for_robot`).
+
+    Joints: ``a = direction·(servo angle from the description) + offset``; with the joint zeros held in
+    the servos' Homing Offset (what `felis calibrate` writes) ``direction`` is all ones and ``offset`` zero.
+    IMU: ``imu_rotation`` is the sensor's orientation in the body frame (unit quaternion w, x, y, z),
+    ``gyro_bias`` the sensor-frame rate it reports at rest (rad/s); None = identity / zero.
+    """
 
     direction: np.ndarray  # ±1 per joint
     offset: np.ndarray  # rad per joint
+    imu_rotation: np.ndarray | None = None
+    gyro_bias: np.ndarray | None = None
+    homing: np.ndarray | None = None  # Homing Offset (ticks) each servo must hold; checked on connect
+    tick_range: tuple[np.ndarray, np.ndarray] | None = None  # Min/Max Position Limit (ticks): goals clip to it
 
     @staticmethod
     def identity(n: int) -> Calibration:
@@ -64,7 +76,8 @@ class DynamixelRobot(RobotBase):
         spec: the robot description.
         port: serial device of the Dynamixel bus.
         baud: the servos' baud rate.
-        calibration: per-joint direction and offset; identity when None.
+        calibration: per-joint direction and offset, and the IMU's mounting rotation and gyro bias (applied to
+            every IMU reading: `felis.drivers.imu.apply_mounting`); identity when None.
         imu_port: serial device of the BNO08x in UART-RVC mode (only if the description has an IMU).
         bus: an already-built `DynamixelBus` (tests, custom timeouts); ``port``/``baud`` are then ignored.
         retries: extra sync reads per tick for servos that did not answer.
@@ -90,6 +103,7 @@ class DynamixelRobot(RobotBase):
         m = np.array([j.m_per_rad for j in spec.joints], float)
         self._k = cal.direction * d / m
         self._b = cal.direction * z + cal.offset
+        self._tick_lo, self._tick_hi = cal.tick_range if cal.tick_range is not None else (0, 4095)
         models = [servo_model(j.servo) for j in spec.joints]
         # raw Present Current/Load unit -> horn torque (N·m)
         self._torque_per_unit = np.array([
@@ -108,7 +122,7 @@ class DynamixelRobot(RobotBase):
     # ------------------------------------------------------------------ conversions
     def q_to_ticks(self, q: np.ndarray) -> np.ndarray:
         a = self._k * np.asarray(q, float) + self._b
-        return np.clip(np.rint(2048.0 + a / RAD_PER_TICK), 0, 4095).astype(np.int64)
+        return np.clip(np.rint(2048.0 + a / RAD_PER_TICK), self._tick_lo, self._tick_hi).astype(np.int64)
 
     def ticks_to_q(self, ticks: np.ndarray) -> np.ndarray:
         a = (np.asarray(ticks, float) - 2048.0) * RAD_PER_TICK
@@ -138,6 +152,15 @@ class DynamixelRobot(RobotBase):
         if not_position:
             raise CommError(f"servos not in position mode: {', '.join(not_position)}; fix: `felis torque off` then "
                             "`felis write ID operating_mode position`")
+        if self.calibration.homing is not None:
+            held = bus.sync_read(self.ids, _HOMING_OFFSET, 4, fast=False, retries=2)
+            differ = [f"{j.name} (ID {j.servo_id}) holds {int.from_bytes(held.data[j.servo_id], 'little', signed=True)}"
+                      f", the file {int(h)}" for j, h in zip(self.spec.joints, self.calibration.homing, strict=True)
+                      if held.data[j.servo_id] is not None
+                      and int.from_bytes(held.data[j.servo_id], "little", signed=True) != int(h)]
+            if differ:
+                raise CalibrationError(f"Homing Offset differs from the calibration file: {'; '.join(differ)}; "
+                                       "see `felis calibration diff` and resolve with `felis calibration apply`")
         for i, secs, fix in bus.check_return_delay(self.ids):
             self.warnings.append(f"servo {i}: Return Delay Time {secs * 1e6:.0f} µs slows every read; fix: {fix}")
         lat = bus.latency_warning()
@@ -227,6 +250,9 @@ class DynamixelRobot(RobotBase):
         imu = None
         if self.imu is not None:
             imu = self.imu.latest()
+            cal = self.calibration
+            if imu is not None and (cal.imu_rotation is not None or cal.gyro_bias is not None):
+                imu = apply_mounting(imu, cal.imu_rotation, cal.gyro_bias)  # sensor frame -> body frame
         return State(t=time.monotonic() - self._t0, q=self._q.copy(), dq=self._dq.copy(), effort=self._effort.copy(),
                      imu=imu if isinstance(imu, Imu) else None,
                      faults=Faults(hardware=self._hw.copy(), comm_errors=self.bus.failed_transactions,

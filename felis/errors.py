@@ -55,3 +55,17 @@ class SimulationError(FelisError):
 
 class LogError(FelisError):
     """A run log cannot be written or read (missing file, not an MCAP file, wrong schema)."""
+
+
+class CalibrationError(FelisError):
+    """A calibration step or file is wrong: a bad range, an offset the servo cannot hold, a corrupt or
+    mismatched calibration file, a robot id that cannot be a file name. Nothing was written."""
+
+
+class ServoParamsError(FelisError):
+    """A servo parameter file (`felis sysid` output) is missing, malformed, for another robot, names an
+    unknown joint or holds a non-finite or negative value. Nothing was written."""
+
+
+class SysidError(FelisError):
+    """System identification cannot proceed: unknown joints, an unusable recording, a fit that failed."""

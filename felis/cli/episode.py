@@ -38,7 +38,11 @@ class Episode:
     port: str | None = None  # dxl: serial device, or "virtual" (a virtual bus backed by MuJoCo)
     baud: int = 1_000_000
     imu_port: str | None = None  # dxl: the IMU's serial device (cat)
+    robot_id: str | None = None  # dxl: the robot's calibration (`felis calibrate --id`)
+    calibration: Path | None = None  # dxl: a calibration file path instead of the id's
+    yes: bool = False  # dxl: apply EEPROM setting differences without asking
     warnings: list[str] = field(default_factory=list)  # filled by the run: connect-time advice
+    servo_params: Path | None = None  # a servo parameter file (`felis sysid`) for the simulated servos
 
 
 @dataclass
@@ -92,7 +96,12 @@ def run_episode(ep: Episode) -> EpisodeResult:
     spec = load_spec(ep.robot)
     controller = make_controller(ep.controller)
     _check(ep)
-    robot = MujocoRobot(spec)
+    servo = None
+    if ep.servo_params is not None:
+        from felis.sim.servo_file import load_servo_params
+
+        servo = load_servo_params(ep.servo_params, spec)
+    robot = MujocoRobot(spec, servo=servo)
     files: dict[str, str] = {}
     with robot:
         info = drop(robot, *ep.drop) if ep.drop is not None else None
@@ -151,6 +160,12 @@ def run_hardware(ep: Episode) -> EpisodeResult:
         raise ParameterError("drops and video need the simulation backend (--backend sim)")
     if ep.port is None:
         raise ParameterError("the dxl backend needs --port PATH (see `felis find-port`) or --port virtual")
+    if ep.servo_params is not None and ep.port != "virtual":
+        raise ParameterError("--servo-params sets the simulated servos: use it with --backend sim or --port virtual")
+    if ep.servo_params is not None:
+        from felis.sim.servo_file import load_servo_params
+
+        load_servo_params(ep.servo_params, spec)  # a bad file is one line here, not a failed child process
     _check(ep)
     files: dict[str, str] = {}
     with contextlib.ExitStack() as stack:
@@ -158,9 +173,10 @@ def run_hardware(ep: Episode) -> EpisodeResult:
         if port == "virtual":
             from felis.drivers.virtual import spawn
 
-            vb = stack.enter_context(spawn(ep.robot, sim=True, baud=ep.baud))
+            vb = stack.enter_context(spawn(ep.robot, sim=True, baud=ep.baud, servo_params=ep.servo_params))
             port, imu_port = vb.port, imu_port or vb.imu_port
-        robot = stack.enter_context(DynamixelRobot(spec, port, ep.baud, imu_port=imu_port))
+        calibration = _connect_checks(ep, spec, port)
+        robot = stack.enter_context(DynamixelRobot(spec, port, ep.baud, imu_port=imu_port, calibration=calibration))
         ep.warnings.extend(robot.warnings)
         log = None
         try:
@@ -184,3 +200,29 @@ def run_hardware(ep: Episode) -> EpisodeResult:
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
     return EpisodeResult(report=report, landing=None, drop=None, files=files, warnings=ep.warnings)
+
+
+def _connect_checks(ep: Episode, spec, port: str):
+    """Before the robot connects: load its calibration (if an id or file is given) and check the servos'
+    EEPROM settings, applying differences with the operator's confirmation (or ``--yes``).
+
+    Returns the host-side calibration for `DynamixelRobot`, or None (with a warning) when uncalibrated.
+    """
+    from felis.calib.calfile import calibration_path, load
+    from felis.calib.operator import ConsoleOperator
+    from felis.cli.calib import eeprom_check
+    from felis.drivers.bus import DynamixelBus
+
+    cal = None
+    if ep.calibration is not None or ep.robot_id is not None:
+        cal = load(ep.calibration or calibration_path(spec.name, ep.robot_id), spec)
+    elif ep.port != "virtual":
+        ep.warnings.append(f"no calibration: joint zeros are the servos' raw centre ticks; run `felis calibrate "
+                           f"--robot {spec.name} --id NAME` and pass --robot-id NAME")
+    with DynamixelBus(port, ep.baud) as bus:
+        applied = eeprom_check(bus, spec, cal, ConsoleOperator(yes=ep.yes, quiet=True))
+    if applied:
+        ep.warnings.append(f"applied {len(applied)} EEPROM setting(s): "
+                           + ", ".join(f"{d.joint}.{d.item} {d.motor}→{d.expected}" for d in applied[:6])
+                           + (" …" if len(applied) > 6 else ""))
+    return cal.for_robot(spec) if cal is not None else None

@@ -159,7 +159,8 @@ def _drop_args(args) -> tuple[float, float, float, float] | None:
 
 def cmd_sim_drop(args) -> int:
     res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
-                   drop=(args.height, args.roll, args.pitch, args.yaw), log=args.log, video=args.video)
+                   drop=(args.height, args.roll, args.pitch, args.yaw), log=args.log, video=args.video,
+                   servo_params=args.servo_params)
     return _report(args, res)
 
 
@@ -205,9 +206,12 @@ def cmd_run(args) -> int:
     backend = "dxl" if args.backend in ("dxl", "dynamixel") else args.backend
     if backend == "sim" and args.port is not None:
         raise ParameterError("--port needs --backend dxl")
+    if backend == "sim" and (args.robot_id or args.calibration):
+        raise ParameterError("--robot-id and --calibration calibrate servos: they need --backend dxl")
     res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration, log=args.log,
                    clock="wall" if backend == "dxl" else args.clock, rate_hz=args.rate, backend=backend,
-                   port=args.port, baud=args.baud, imu_port=args.imu_port)
+                   port=args.port, baud=args.baud, imu_port=args.imu_port, servo_params=args.servo_params,
+                   robot_id=args.robot_id, calibration=args.calibration, yes=args.yes)
     return _report(args, res)
 
 
@@ -289,18 +293,25 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--port", help="dxl: serial device, or 'virtual' (virtual bus backed by MuJoCo)")
     run.add_argument("--baud", type=int, default=1_000_000, help="dxl: baud rate (default 1000000)")
     run.add_argument("--imu-port", help="dxl: serial device of the cat's IMU (BNO08x UART-RVC)")
+    run.add_argument("--robot-id", help="dxl: use this robot's calibration (`felis calibrate --id`)")
+    run.add_argument("--calibration", type=Path, metavar="FILE", help="dxl: a calibration file instead of --robot-id")
+    run.add_argument("--yes", action="store_true", help="dxl: apply EEPROM setting differences without asking")
     run.add_argument("--duration", type=_float, default=3.0, help="seconds (default 3)")
     run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
     run.add_argument("--rate", type=_float, help="control rate in Hz (default: the description's, 100)")
     run.add_argument("--clock", choices=["sim", "wall"], default="sim",
                      help="sim: as fast as possible; wall: real time (default sim)")
     run.add_argument("--json", action="store_true", help="print the run report as JSON")
+    run.add_argument("--servo-params", type=Path, metavar="FILE",
+                     help="simulated servos' parameters from `felis sysid` (sim backend or --port virtual)")
     run.set_defaults(func=cmd_run)
 
     from felis.cli import dxl
 
     dxl.register(sub, _Parser)
     __import__("felis.cli.virtualbus", fromlist=["register"]).register(sub, _Parser)  # felis virtual-bus
+    __import__("felis.cli.calib", fromlist=["register"]).register(sub, _Parser)  # setup-motors, calibrate, …
+    __import__("felis.cli.sysid", fromlist=["register"]).register(sub, _Parser)  # felis sysid
 
     sim = sub.add_parser("sim", help="simulation: drop, render, view")
     simsub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", parser_class=_Parser)
@@ -320,6 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     drop.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
     drop.add_argument("--video", type=Path, help="render to this file (.mp4, .gif, .png)")
     drop.add_argument("--json", action="store_true", help="print results as JSON")
+    drop.add_argument("--servo-params", type=Path, metavar="FILE", help="servo parameters from `felis sysid`")
     drop.set_defaults(func=cmd_sim_drop)
 
     render = simsub.add_parser("render", help="render a run offscreen to MP4, GIF or PNG (film strip)")
