@@ -24,6 +24,7 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/sim_speed.py
 	$(PY) bench/bus_loop.py
+	$(PY) bench/sysid_recovery.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -351,6 +351,7 @@ def register(sub, parser_class) -> None:
     im.add_argument("--json", action="store_true", help="print results as JSON")
     im.set_defaults(func=cmd_cal_import)
     ls = cs.add_parser("list", help="calibration files in the config directory")
+    ls.add_argument("--yes", action="store_true", help="accepted for symmetry (list never asks)")
     ls.add_argument("--json", action="store_true", help="print results as JSON")
     ls.set_defaults(func=cmd_cal_list)
 
