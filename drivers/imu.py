@@ -142,12 +142,21 @@ def rvc_from_quat(q: np.ndarray) -> tuple[float, float, float]:
     if q.shape != (4,) or not math.isfinite(norm) or norm == 0.0:
         raise ValueError(f"not a valid quaternion: {q!r}")
     w, x, y, z = q / norm
-    s = 2 * (w * y - z * x)
-    if abs(s) >= 1 - 1e-12:
-        return _wrap_pi(2 * math.atan2(z, w)), math.copysign(math.pi / 2, s), 0.0
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return _wrap_pi(yaw), math.asin(s), _wrap_pi(roll)
+    # Bernardes & Viollet (2022), "Quaternion to Euler angles conversion: a direct, general and
+    # computationally efficient method", for R = Rz(yaw)·Ry(pitch)·Rx(roll): no asin (full precision at
+    # |pitch| → 90°), and near gimbal lock the ill-defined difference angle only moves the rotation by
+    # as little as the term that defines it, so the round trip stays exact to rounding.
+    a, b, c, d = w - y, x + z, y + w, z - x
+    pitch = 2 * math.atan2(math.hypot(c, d), math.hypot(a, b)) - math.pi / 2
+    plus, minus = math.atan2(b, a), math.atan2(d, c)
+    # At gimbal lock (|pitch| within ~1e-12 rad of 90°) only yaw ± roll is defined: roll is reported as 0,
+    # which moves the rotation by at most ~1e-11 rad.
+    if math.hypot(c, d) < 1e-12:  # pitch = −90°: yaw + roll
+        minus = plus
+    elif math.hypot(a, b) < 1e-12:  # pitch = +90°: yaw − roll
+        plus = minus
+    roll, yaw = plus - minus, plus + minus
+    return _wrap_pi(yaw), pitch, _wrap_pi(roll)
 
 
 def body_rate(q_prev: np.ndarray, q_cur: np.ndarray, dt: float) -> np.ndarray:
