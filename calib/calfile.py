@@ -27,7 +27,6 @@ import json
 import math
 import os
 import re
-import tempfile
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -35,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import CalibrationError
-from felis.files import default_mode, prepare_parent
+from felis.files import write_atomic
 from felis.servos import RAD_PER_TICK, TICKS_PER_REV
 from felis.spec import JointSpec, RobotSpec
 
@@ -323,60 +322,13 @@ def save(cal: CalibrationFile, path: str | Path) -> Path:
     """Write ``cal`` atomically to ``path``, keeping the current file as ``<path>.bak`` (module doc)."""
     path = Path(path)
     check_robot_id(cal.robot_id)
-    prepare_parent(path, "calibration file", CalibrationError)
     text = json.dumps(cal.to_dict(), indent=2) + "\n"
-    tmp = _write_temp(path, text)
-    try:
-        if path.is_file():
-            bak_tmp = _write_temp(path, path.read_bytes())
-            os.replace(bak_tmp, backup_path(path))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _sync_dir(path.parent)
-    return path
-
-
-def _write_temp(path: Path, content: str | bytes) -> str:
-    """A flushed, fsynced temporary file next to ``path`` holding ``content`` (its name)."""
-    data = content.encode("utf-8") if isinstance(content, str) else content
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    except OSError as e:
-        raise CalibrationError(f"cannot write calibration file {path}: {e.strerror or e}") from None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        default_mode(tmp)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return tmp
-
-
-def _sync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+    return write_atomic(path, text, "calibration file", CalibrationError, backup=backup_path(path))
 
 
 def copy_out(src: Path, dst: str | Path) -> Path:
     """Export: copy a checked calibration file to ``dst`` (atomic, like `save`)."""
-    dst = Path(dst)
-    prepare_parent(dst, "calibration file", CalibrationError)
-    tmp = _write_temp(dst, Path(src).read_bytes())
-    os.replace(tmp, dst)
-    return dst
+    return write_atomic(dst, Path(src).read_bytes(), "calibration file", CalibrationError)
 
 
 def stale_temps(folder: Path) -> list[Path]:

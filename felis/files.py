@@ -1,13 +1,18 @@
-"""Output files: parent folders made with a clear error, and permissions as a plain ``open`` gives.
+"""Output files: parent folders made with a clear error, permissions as a plain ``open`` gives, and
+atomic replacement.
 
-Every writer in felis (run logs, plots, videos, later calibration files) prepares its target here,
-so an operator who gives a bad path gets one line naming the part that is wrong.
+Every writer in felis (run logs, plots, videos, calibration and servo parameter files) prepares its
+target here, so an operator who gives a bad path gets one line naming the part that is wrong; files
+that must never be seen half-written (plots, calibration, servo parameters) go through `write_atomic`.
 """
 
 from __future__ import annotations
 
 import os
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 from felis.errors import FelisError
 
@@ -38,3 +43,68 @@ def default_mode(path: str | Path) -> None:
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(path, 0o666 & ~umask)
+
+
+def temp_beside(path: Path, content: bytes | Callable[[BinaryIO], None], what: str,
+                error: type[FelisError] = FelisError) -> str:
+    """A temporary file in ``path``'s folder holding ``content`` (bytes, or written by a callable given
+    the open binary file), flushed and fsynced, with a normal file's mode; returns its name.
+
+    The name is ``.<name>.<random>.tmp``: a write killed before its rename leaves only such a file.
+    """
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise error(f"cannot write {what} {path}: {e.strerror or e}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            if callable(content):
+                content(f)
+            else:
+                f.write(content)
+            f.flush()
+            os.fsync(f.fileno())
+        default_mode(tmp)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise error(f"cannot write {what} {path}: {e.strerror or e}") from None
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def write_atomic(path: str | Path, content: str | bytes | Callable[[BinaryIO], None], what: str,
+                 error: type[FelisError] = FelisError, *, backup: Path | None = None) -> Path:
+    """Replace ``path`` with ``content`` so that a reader, or a crash at any instant, sees either the old
+    file or the new one whole: temporary file beside it (`temp_beside`), then ``os.replace``, then an
+    fsync of the folder. With ``backup``, the current file is first copied there (atomically too).
+    """
+    path = Path(path)
+    prepare_parent(path, what, error)
+    data = content.encode("utf-8") if isinstance(content, str) else content
+    tmp = temp_beside(path, data, what, error)
+    try:
+        if backup is not None and path.is_file():
+            os.replace(temp_beside(backup, path.read_bytes(), what, error), backup)
+        os.replace(tmp, path)
+    except OSError as e:
+        raise error(f"cannot write {what} {path}: {e.strerror or e}") from None
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    sync_dir(path.parent)
+    return path
+
+
+def sync_dir(folder: Path) -> None:
+    """fsync a folder so a rename in it survives a power cut (best effort)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

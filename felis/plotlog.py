@@ -15,14 +15,12 @@ backend switch, safe on a machine without a display and inside other programs.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from felis.errors import LogError, ParameterError
-from felis.files import default_mode, prepare_parent
+from felis.files import write_atomic
 from felis.runlog import LogData, read_log
 
 
@@ -46,30 +44,8 @@ def plot_log(path: str | Path, out: str | Path) -> Path:
         raise ParameterError(f"{out}: plot output must end in .png")
     data = read_log(path)
     fig = _figure(data)
-    prepare_parent(out, "plot", LogError)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    except OSError as e:
-        raise LogError(f"cannot write plot {out}: {e.strerror or e}") from None
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=110)
-        default_mode(tmp)
-        os.replace(tmp, out)
-    except OSError as e:
-        _remove(tmp)
-        raise LogError(f"cannot write plot {out}: {e.strerror or e}") from None
-    except BaseException:
-        _remove(tmp)
-        raise
+    write_atomic(out, lambda fh: fig.savefig(fh, format="png", dpi=110), "plot", LogError)
     return out
-
-
-def _remove(tmp: str) -> None:
-    try:
-        os.unlink(tmp)
-    except OSError:
-        pass
 
 
 def _figure(data: LogData):

@@ -16,17 +16,15 @@ temporary file in the same folder, then ``os.replace``, so a crash never leaves 
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import asdict, fields
 from pathlib import Path
 
 from felis.errors import ServoParamsError
-from felis.files import default_mode, prepare_parent
+from felis.files import write_atomic
 from felis.sim.servo import ServoParams
 from felis.spec import RobotSpec
 
@@ -56,22 +54,7 @@ def save_servo_params(path: str | os.PathLike, robot: str, params: Mapping[str, 
         text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
     except (TypeError, ValueError) as e:
         raise ServoParamsError(f"cannot write servo parameters {path}: {e}") from None
-    prepare_parent(path, "servo parameters", ServoParamsError)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    except OSError as e:
-        raise ServoParamsError(f"cannot write servo parameters {path}: {e.strerror or e}") from None
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        default_mode(tmp)
-        os.replace(tmp, path)
-    except OSError as e:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise ServoParamsError(f"cannot write servo parameters {path}: {e.strerror or e}") from None
+    write_atomic(path, text, "servo parameters", ServoParamsError)
     return path
 
 
