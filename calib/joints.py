@@ -20,8 +20,6 @@ direction of each joint comes from the description.
 
 from __future__ import annotations
 
-import numpy as np
-
 from felis.calib.calfile import (
     CENTRE,
     CalibrationFile,
@@ -217,10 +215,3 @@ def _after_zero(bus, spec, robot_id, operator, chosen, offsets, info, previous, 
     operator.say(f"calibration written to {written}")
     return cal, written
 
-
-def positions_q(bus: DynamixelBus, spec: RobotSpec) -> np.ndarray:
-    """Joint positions (rad/m) as a calibrated `DynamixelRobot` would read them (for checks)."""
-    from felis.calib.calfile import q_of_tick
-
-    p = read_i32(bus, list(spec.joints), PRESENT_POSITION)
-    return np.array([q_of_tick(j, p[j.name]) for j in spec.joints])
