@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import errno
 import glob
+import math
 import os
 import stat
 import termios
@@ -170,7 +171,8 @@ class DynamixelBus:
         port: device path (``/dev/ttyUSB0``, a pseudo-terminal of the virtual bus, …).
         baud: bits per second; one of :data:`SDK_BAUDS`.
         retries: extra attempts for single reads/writes and for servos a block read missed.
-        timeout_margin_ms: slack added to every computed reply timeout.
+        timeout_margin_ms: slack added to every computed reply timeout (default: ``$FELIS_TIMEOUT_MARGIN_MS``,
+            else 10 ms on a pseudo-terminal and 4 ms on an adapter; raise it for slow hubs or loaded hosts).
         return_delay_us: the Return Delay Time assumed when computing timeouts (servos set up by
             ``felis`` use 0; factory servos 500 µs: :meth:`check_return_delay` finds them).
         fast_sync_read: use FAST_SYNC_READ when every servo's firmware has it (after :meth:`ping`).
@@ -225,7 +227,7 @@ class DynamixelBus:
         lat = latency_timer_ms(self.port_name)
         self._latency_ms = 0.0 if pty else float(lat if lat is not None else sdk.port_handler.LATENCY_TIMER)
         if self._margin_ms is None:
-            self._margin_ms = 10.0 if pty else 4.0
+            self._margin_ms = _env_margin_ms() if os.environ.get("FELIS_TIMEOUT_MARGIN_MS") else 10.0 if pty else 4.0
         return self
 
     def close(self) -> None:
@@ -703,6 +705,17 @@ def _params(pkt: list[int]) -> list[int]:
     """
     n = (pkt[5] | pkt[6] << 8) - 4  # LEN counts INST, ERR, params, CRC
     return pkt[9: 9 + max(n, 0)]
+
+
+def _env_margin_ms() -> float:
+    text = os.environ["FELIS_TIMEOUT_MARGIN_MS"]
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and 0 <= v <= 1000):
+        raise ParameterError(f"FELIS_TIMEOUT_MARGIN_MS must be 0…1000 (ms), got {text!r}")
+    return v
 
 
 def _check_id(dxl_id: int) -> None:
