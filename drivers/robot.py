@@ -153,11 +153,11 @@ class DynamixelRobot(RobotBase):
             raise CommError(f"servos not in position mode: {', '.join(not_position)}; fix: `felis torque off` then "
                             "`felis write ID operating_mode position`")
         if self.calibration.homing is not None:
-            held = bus.sync_read(self.ids, _HOMING_OFFSET, 4, fast=False, retries=2)
-            differ = [f"{j.name} (ID {j.servo_id}) holds {int.from_bytes(held.data[j.servo_id], 'little', signed=True)}"
-                      f", the file {int(h)}" for j, h in zip(self.spec.joints, self.calibration.homing, strict=True)
-                      if held.data[j.servo_id] is not None
-                      and int.from_bytes(held.data[j.servo_id], "little", signed=True) != int(h)]
+            res = bus.sync_read(self.ids, _HOMING_OFFSET, 4, fast=False, retries=2)
+            held = {i: int.from_bytes(b, "little", signed=True) for i, b in res.data.items() if b is not None}
+            differ = [f"{j.name} (ID {j.servo_id}) holds {held[j.servo_id]}, the file {int(h)}"
+                      for j, h in zip(self.spec.joints, self.calibration.homing, strict=True)
+                      if j.servo_id in held and held[j.servo_id] != int(h)]
             if differ:
                 raise CalibrationError(f"Homing Offset differs from the calibration file: {'; '.join(differ)}; "
                                        "see `felis calibration diff` and resolve with `felis calibration apply`")
