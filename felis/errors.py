@@ -69,3 +69,13 @@ class ServoParamsError(FelisError):
 
 class SysidError(FelisError):
     """System identification cannot proceed: unknown joints, an unusable recording, a fit that failed."""
+
+
+class TrajectoryError(FelisError):
+    """A trajectory file (CSV ``t,x,y,z``) or stream is unusable: missing columns, non-numeric or
+    non-finite values, time not increasing, or not at the expected rate. Nothing was run."""
+
+
+class WeightsError(FelisError):
+    """A weights file (``.npz``) is missing, corrupt, for another model or shape, or holds non-finite
+    values. The controller refuses it before moving anything."""
