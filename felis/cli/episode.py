@@ -43,6 +43,7 @@ class Episode:
     yes: bool = False  # dxl: apply EEPROM setting differences without asking
     warnings: list[str] = field(default_factory=list)  # filled by the run: connect-time advice
     servo_params: Path | None = None  # a servo parameter file (`felis sysid`) for the simulated servos
+    controller_options: dict = field(default_factory=dict)  # e.g. arm-track's trajectory
 
 
 @dataclass
@@ -52,9 +53,12 @@ class EpisodeResult:
     drop: object | None
     files: dict[str, str]
     warnings: list[str] = field(default_factory=list)
+    controller: dict | None = None  # the controller's own summary (e.g. arm-track's tracking error)
 
     def as_dict(self) -> dict:
         out = {"run": self.report.as_dict(), "files": self.files}
+        if self.controller is not None:
+            out["controller"] = self.controller
         if self.warnings:
             out["warnings"] = self.warnings
         if self.drop is not None:
@@ -94,7 +98,7 @@ def run_episode(ep: Episode) -> EpisodeResult:
     from felis.sim.scenarios import drop
 
     spec = load_spec(ep.robot)
-    controller = make_controller(ep.controller)
+    controller = make_controller(ep.controller, **ep.controller_options)
     _check(ep)
     servo = None
     if ep.servo_params is not None:
@@ -144,7 +148,11 @@ def run_episode(ep: Episode) -> EpisodeResult:
         from felis.plotlog import plot_log
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
-    return EpisodeResult(report=report, landing=landing, drop=info, files=files)
+    return EpisodeResult(report=report, landing=landing, drop=info, files=files, controller=_summary(controller))
+
+
+def _summary(controller) -> dict | None:
+    return controller.summary() if callable(getattr(controller, "summary", None)) else None
 
 
 def run_hardware(ep: Episode) -> EpisodeResult:
@@ -155,7 +163,7 @@ def run_hardware(ep: Episode) -> EpisodeResult:
     from felis.drivers.robot import DynamixelRobot
 
     spec = load_spec(ep.robot)
-    controller = make_controller(ep.controller)
+    controller = make_controller(ep.controller, **ep.controller_options)
     if ep.drop is not None or ep.video is not None:
         raise ParameterError("drops and video need the simulation backend (--backend sim)")
     if ep.port is None:
@@ -199,7 +207,8 @@ def run_hardware(ep: Episode) -> EpisodeResult:
         from felis.plotlog import plot_log
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
-    return EpisodeResult(report=report, landing=None, drop=None, files=files, warnings=ep.warnings)
+    return EpisodeResult(report=report, landing=None, drop=None, files=files, warnings=ep.warnings,
+                         controller=_summary(controller))
 
 
 def _connect_checks(ep: Episode, spec, port: str):

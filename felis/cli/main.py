@@ -103,6 +103,14 @@ def _print_result(res, console) -> None:
     if res.landing is not None:
         colour = "green" if res.landing.on_feet else "yellow"
         console.print(f"[{colour}]{res.landing.summary()}[/]")
+    summary = getattr(res, "controller", None)
+    if summary and "tracking_error" in summary:
+        c, m = summary["command_error"], summary["tracking_error"]
+        if c["median_mm"] is not None and m["median_mm"] is not None:
+            console.print(f"arm-track: {summary['frames']} frames; IK error of the commands median "
+                          f"{c['median_mm']:.2g} mm, max {c['max_mm']:.2g} mm; measured tool point vs target median "
+                          f"{m['median_mm']:.1f} mm, p95 {m['p95_mm']:.1f} mm (servo lag included); unreachable "
+                          f"{summary['unreachable']}, invalid {summary['invalid']}")
     for kind, path in res.files.items():
         console.print(f"{kind}: {path}")
 
@@ -208,10 +216,21 @@ def cmd_run(args) -> int:
         raise ParameterError("--port needs --backend dxl")
     if backend == "sim" and (args.robot_id or args.calibration):
         raise ParameterError("--robot-id and --calibration calibrate servos: they need --backend dxl")
-    res = _episode(args, robot=args.robot, controller=args.controller, duration=args.duration, log=args.log,
+    options: dict = {}
+    duration = args.duration
+    if args.controller == "arm-track":
+        from felis.controllers.arm_track import trajectory_from
+
+        traj = trajectory_from(args.trajectory or "figure8")
+        options = {"trajectory": traj, "weights": args.weights}
+        if duration is None:  # lead-in, the trajectory, half a second to settle
+            duration = 1.5 + float(traj.t[-1] - traj.t[0]) + 0.5
+    elif args.trajectory is not None or args.weights is not None:
+        raise ParameterError("--trajectory and --weights belong to the arm-track controller")
+    res = _episode(args, robot=args.robot, controller=args.controller, duration=duration or 3.0, log=args.log,
                    clock="wall" if backend == "dxl" else args.clock, rate_hz=args.rate, backend=backend,
                    port=args.port, baud=args.baud, imu_port=args.imu_port, servo_params=args.servo_params,
-                   robot_id=args.robot_id, calibration=args.calibration, yes=args.yes)
+                   robot_id=args.robot_id, calibration=args.calibration, yes=args.yes, controller_options=options)
     return _report(args, res)
 
 
@@ -239,7 +258,8 @@ def cmd_log_plot(args) -> int:
 def cmd_demo(args) -> int:
     """Servo-in-the-loop: the cat stands up through the virtual Dynamixel bus backed by MuJoCo (the
     whole hardware code path: DynamixelRobot, SDK, pseudo-terminal, byte-level servos, physics);
-    then the cat dropped upside-down from 1 m in MuJoCo directly, with video."""
+    then the cat dropped upside-down from 1 m in MuJoCo directly, with video; then the arm tracking a
+    figure eight with the learned IK pipeline (seed 001), with video."""
     root = Path(args.out)
     if root.exists() and not root.is_dir():
         raise ParameterError(f"{root} exists and is not a directory")
@@ -251,19 +271,29 @@ def cmd_demo(args) -> int:
         run_dir = root / f"{stamp}-{n}"
     console = _console()
     t0 = time.perf_counter()
-    console.print("[bold]felis demo 1/2[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
+    console.print("[bold]felis demo 1/3[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
                   "by MuJoCo (DynamixelRobot → dynamixel-sdk → pty → emulated servos → physics)")
     bus_res = _episode(args, robot="cat", controller="stand", duration=3.0, backend="dxl", port="virtual",
                        rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
                        meta={"demo": True})
     _print_result(bus_res, console)
-    console.print("[bold]felis demo 2/2[/]: the cat dropped upside-down from 1 m under the stand controller (MuJoCo)")
+    console.print("[bold]felis demo 2/3[/]: the cat dropped upside-down from 1 m under the stand controller (MuJoCo)")
     res = _episode(args, robot="cat", controller="stand", duration=2.5, drop=(1.0, 180.0, 0.0, 0.0),
                    log=run_dir / "drop.mcap", video=None if args.no_video else run_dir / "drop.mp4",
                    plot=run_dir / "drop.png", meta={"demo": True})
     _print_result(res, console)
+    console.print("[bold]felis demo 3/3[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
+                  "Posture Estimator → mean filter → exact refinement (MuJoCo)")
+    from felis.controllers.arm_track import trajectory_from
+
+    eight = trajectory_from("figure8")
+    arm_res = _episode(args, robot="arm", controller="arm-track", duration=1.5 + float(eight.t[-1]) + 0.5,
+                       controller_options={"trajectory": eight}, log=run_dir / "arm_figure8.mcap",
+                       video=None if args.no_video else run_dir / "arm_figure8.mp4",
+                       plot=run_dir / "arm_figure8.png", meta={"demo": True})
+    _print_result(arm_res, console)
     console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {run_dir}/")
-    return 0 if res.report.ok and bus_res.report.ok else EXIT_ERROR
+    return 0 if res.report.ok and bus_res.report.ok and arm_res.report.ok else EXIT_ERROR
 
 
 # --------------------------------------------------------------------------------- parser
@@ -280,13 +310,14 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_doctor)
 
     demo = sub.add_parser("demo", help="the cat through the virtual Dynamixel bus (servo-in-the-loop), then a "
-                          "simulated drop; logs, plots, video")
+                          "simulated drop, then the arm tracking a figure eight with the learned IK; logs, plots, "
+                          "video")
     demo.add_argument("--out", default="runs", help="directory for runs/<timestamp>/ (default: runs)")
     demo.add_argument("--no-video", action="store_true", help="skip rendering")
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="run a controller on a robot")
-    run.add_argument("controller", help="controller name: hold, stand, sit, zero")
+    run.add_argument("controller", help="controller name: hold, stand, sit, zero, arm-track")
     run.add_argument("--robot", required=True, help="robot name (cat, arm) or a description .toml")
     run.add_argument("--backend", default="sim", choices=["sim", "dxl", "dynamixel"],
                      help="sim: MuJoCo; dxl: Dynamixel servos on --port (default sim)")
@@ -296,7 +327,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--robot-id", help="dxl: use this robot's calibration (`felis calibrate --id`)")
     run.add_argument("--calibration", type=Path, metavar="FILE", help="dxl: a calibration file instead of --robot-id")
     run.add_argument("--yes", action="store_true", help="dxl: apply EEPROM setting differences without asking")
-    run.add_argument("--duration", type=_float, default=3.0, help="seconds (default 3)")
+    run.add_argument("--duration", type=_float, help="seconds (default 3; arm-track: the trajectory's length)")
+    run.add_argument("--trajectory", metavar="circle|figure8|FILE.csv",
+                     help="arm-track: the tool-point trajectory (CSV t,x,y,z at 100 Hz; default figure8)")
+    run.add_argument("--weights", type=Path, metavar="FILE", help="arm-track: IK weights (default: the shipped ones)")
     run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
     run.add_argument("--rate", type=_float, help="control rate in Hz (default: the description's, 100)")
     run.add_argument("--clock", choices=["sim", "wall"], default="sim",
@@ -312,6 +346,14 @@ def build_parser() -> argparse.ArgumentParser:
     __import__("felis.cli.virtualbus", fromlist=["register"]).register(sub, _Parser)  # felis virtual-bus
     __import__("felis.cli.calib", fromlist=["register"]).register(sub, _Parser)  # setup-motors, calibrate, …
     __import__("felis.cli.sysid", fromlist=["register"]).register(sub, _Parser)  # felis sysid
+
+    train = sub.add_parser("train", help="train learned controllers: ik")
+    trainsub = train.add_subparsers(dest="train_command", metavar="WHAT", parser_class=_Parser)
+    train.set_defaults(func=lambda a: _missing(train))
+    evl = sub.add_parser("eval", help="evaluate learned controllers: ik")
+    evalsub = evl.add_subparsers(dest="eval_command", metavar="WHAT", parser_class=_Parser)
+    evl.set_defaults(func=lambda a: _missing(evl))
+    __import__("felis.cli.ik", fromlist=["register"]).register(trainsub, evalsub, _Parser)  # train/eval ik
 
     sim = sub.add_parser("sim", help="simulation: drop, render, view")
     simsub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", parser_class=_Parser)

@@ -1,0 +1,157 @@
+"""`felis train ik`: demonstrations → Motion Predictor and Posture Estimator → weights and results.
+
+One run (seed 001 §3.1): generate the deterministic demonstration corpus (`ik_data.make_corpus`),
+split it by whole trajectories into train / validation / test, cut every frame into windows, train
+the Motion Predictor (v_{i−10}, v_{i−5}, v_i → v_{i+5}, v_{i+10}) and the Posture Estimator (the
+five frames → joint angles of frames i … i+5, as sin/cos), save both in one ``.npz`` weights file,
+then evaluate the whole pipeline on the held-out test trajectories (`ik_eval.evaluate`). Writes
+beside the weights: ``<name>.results.json`` and ``<name>.curves.png`` (learning curves).
+
+Variants for the paper's ablations: ``pe_frames`` 1 (v_i), 3 (v_{i−10}, v_{i−5}, v_i: no Motion
+Predictor needed) or 5 (the paper's), and ``kind`` "lstm" or "mlp" (a multilayer perceptron of
+similar size, `ik_net.SeqNet`).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from felis.errors import ParameterError
+from felis.learning.ik_data import MP_IN, MP_OUT, PE_IN, PE_OUT, make_corpus, split, windows
+
+PE_VARIANTS: dict[int, tuple[int, ...]] = {1: (0,), 3: (-10, -5, 0), 5: tuple(PE_IN)}
+
+
+@dataclass
+class IkTrainConfig:
+    """What `felis train ik` trains; the defaults made the shipped weights."""
+
+    corpus: int = 400  # demonstration trajectories (train 80% / validation 10% / test 10%)
+    corpus_seed: int = 1
+    seed: int = 0  # network initialisation and batch order
+    kind: str = "lstm"  # "lstm" or "mlp"
+    hidden: int = 64
+    layers: int = 2
+    pe_frames: int = 5  # Posture Estimator input frames: 1, 3 or 5
+    epochs: int = 30
+    batch: int = 128  # the paper's
+    lr: float = 2e-3
+    lr_decay: float = 0.9  # per epoch
+    grad_clip: float = 1.0
+    stride: int = 2  # every stride-th frame of the training trajectories is a training window
+    threads: int = 0  # torch threads; 0: all cores
+    recorded: tuple[str, ...] = ()  # run logs (MCAP) of the arm added to the training split
+
+    def check(self) -> None:
+        if self.kind not in ("lstm", "mlp"):
+            raise ParameterError(f"--kind must be lstm or mlp, got {self.kind!r}")
+        if self.pe_frames not in PE_VARIANTS:
+            raise ParameterError(f"--pe-frames must be 1, 3 or 5, got {self.pe_frames}")
+        for name in ("corpus", "hidden", "layers", "epochs", "batch", "stride"):
+            if int(getattr(self, name)) < (3 if name == "corpus" else 1):
+                raise ParameterError(f"--{name.replace('_', '-')} too small: {getattr(self, name)}")
+        if not (0 < self.lr < 1 and 0 < self.lr_decay <= 1 and self.grad_clip > 0):
+            raise ParameterError("learning rate must be in (0, 1), decay in (0, 1], gradient clip > 0")
+
+
+def data(cfg: IkTrainConfig):
+    """The corpus split and every window set the run needs."""
+    corpus = make_corpus(cfg.corpus, cfg.corpus_seed)
+    train, val, test = split(corpus, cfg.corpus_seed)
+    if cfg.recorded:  # recorded runs of the arm (`felis run … --log`): demonstrations too, for training only
+        from felis.learning.ik_data import recorded_demos
+
+        train = train + [recorded_demos(Path(p)) for p in cfg.recorded]
+    pe_in = PE_VARIANTS[cfg.pe_frames]
+    sets = {}
+    for name, trajs in (("train", train), ("val", val)):
+        mp = windows(trajs, MP_IN, MP_OUT, target="points")
+        pe = windows(trajs, pe_in, PE_OUT, target="angles")
+        if name == "train" and cfg.stride > 1:
+            mp = tuple(a[:: cfg.stride] for a in mp)
+            pe = tuple(a[:: cfg.stride] for a in pe)
+        sets[name] = {"mp": mp, "pe": pe}
+    return (train, val, test), sets, pe_in
+
+
+def train_ik(cfg: IkTrainConfig, out: Path, workdir: Path, *, resume: bool = False,
+             progress: Callable[[str, int, int, float, float], None] | None = None,
+             evaluate_test: bool = True, baselines: bool = True, mp_from: Path | None = None) -> dict:
+    """Train both nets, write ``out`` (weights) and its results JSON and learning curves; return the results.
+
+    ``mp_from``: take the Motion Predictor from this weights file instead of training one (the
+    ablations vary only the Posture Estimator)."""
+    from felis.learning.ik_net import NetSpec, save_weights, torch_to_arrays
+    from felis.learning.ik_train import TrainConfig, train_net
+
+    cfg.check()
+    out, workdir = Path(out), Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    (train, val, test), sets, pe_in = data(cfg)
+    tcfg = TrainConfig(epochs=cfg.epochs, batch=cfg.batch, lr=cfg.lr, lr_decay=cfg.lr_decay,
+                       grad_clip=cfg.grad_clip, seed=cfg.seed, threads=cfg.threads)
+    nets, history = {}, {}
+    for name, k, n_out in (("mp", len(MP_IN), 3 * len(MP_OUT)), ("pe", len(pe_in), 8 * len(PE_OUT))):
+        if name == "mp" and mp_from is not None:  # ablations share one Motion Predictor
+            from felis.learning.ik_net import load_arrays
+
+            arrs, old = load_arrays(mp_from, expect={"nets": ["mp"]})
+            nets[name] = arrs["mp"]
+            history[name] = old.get("history", {}).get("mp", {"train": [], "val": []})
+            continue
+        spec = NetSpec(kind=cfg.kind, k=k, n_in=3, hidden=cfg.hidden, layers=cfg.layers, n_out=n_out, name=name)
+        X, Y = sets["train"][name]
+        Xv, Yv = sets["val"][name]
+        cb = None if progress is None else (lambda e, n, tr, va, _name=name: progress(_name, e, n, tr, va))
+        model, hist = train_net(X, Y, Xv, Yv, spec, tcfg, checkpoint=workdir / f"{name}.ckpt.npz", resume=resume,
+                                progress=cb)
+        nets[name] = (spec, torch_to_arrays(model))
+        history[name] = hist
+    train_s = time.perf_counter() - t0
+    meta = {"pe_in": list(pe_in), "config": asdict(cfg),
+            "corpus": {"trajectories": cfg.corpus, "seed": cfg.corpus_seed, "train": len(train), "val": len(val),
+                       "test": len(test), "train_windows": int(len(sets["train"]["pe"][0]))},
+            "history": history, "train_s": round(train_s, 1)}
+    save_weights(out, nets, meta)
+    results = {"weights": str(out), "size_bytes": out.stat().st_size, "config": asdict(cfg),
+               "params": {n: int(s.param_count) for n, (s, _) in nets.items()}, "corpus": meta["corpus"],
+               "history": history, "train_s": round(train_s, 1)}
+    if evaluate_test:
+        from felis.learning.ik_eval import evaluate
+        from felis.learning.ik_solver import IkSolver
+
+        results["test"] = evaluate(IkSolver.load(out), test, baselines=baselines)
+    stem = out.with_suffix("")
+    from felis.files import write_atomic
+
+    write_atomic(Path(f"{stem}.results.json"), json.dumps(results, indent=2), "IK results", ParameterError)
+    plot_curves(history, Path(f"{stem}.curves.png"))
+    return results
+
+
+def plot_curves(history: dict, path: Path) -> Path:
+    """Training and validation loss per epoch of each net, log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(history), figsize=(5 * len(history), 3.5), squeeze=False)
+    for ax, (name, h) in zip(axes[0], history.items(), strict=True):
+        ax.semilogy(np.arange(1, len(h["train"]) + 1), h["train"], label="train")
+        ax.semilogy(np.arange(1, len(h["val"]) + 1), h["val"], label="validation")
+        ax.set_title({"mp": "Motion Predictor", "pe": "Posture Estimator"}.get(name, name))
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("MSE (standardised)")
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
