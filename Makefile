@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench lint clean
+.PHONY: demo test test-slow bench ik-study lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -25,6 +25,11 @@ bench: $(STAMP)
 	$(PY) bench/sim_speed.py
 	$(PY) bench/bus_loop.py
 	$(PY) bench/sysid_recovery.py
+	$(PY) bench/ik_latency.py
+
+# The IK nets' size table and the paper's ablations over 3 seeds (about 35 min on 2 cores).
+ik-study: $(STAMP)
+	$(PY) bench/ik_study.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

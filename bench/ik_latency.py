@@ -58,7 +58,7 @@ def main() -> int:
         refined.append(np.array(qs))
     pipe = np.concatenate(pipe)
     pts = np.concatenate([t.p for t in trajs])
-    anchor = timed(lambda p: closed_form_rule(p[None]), pts)
+    anchor = timed(lambda p: closed_form_rule(p[None], np.zeros((1, 3))), pts)
     q = np.array([0.0, 0.0, 0.0, 0.6])
 
     def dls(p):

@@ -1,6 +1,6 @@
 """The IK nets' size table and the paper's ablations (seed 001 Fig. 4.7–4.8), trained and measured here.
 
-    python bench/ik_study.py [--epochs 10] [--stride 4] [--out runs/ik-study] [--only NAME,...]
+    python bench/ik_study.py [--epochs 10] [--stride 4] [--seeds 0,1,2] [--out runs/ik-study] [--only NAME,...]
 
 Every variant is trained with the same corpus, seed, epochs and window stride (`felis train ik` with
 options; shorter than the shipped run so that the study fits in about half an hour on 2 cores), then
@@ -12,7 +12,9 @@ its whole pipeline is evaluated on the held-out test trajectories. Rows:
   Motion Predictor;
 - network type: LSTM against an MLP of similar parameter count (`ik_net.mlp_width`).
 
-Prints a Markdown table (also written to ``<out>/study.md`` with the numbers in ``study.json``).
+Each variant is trained once per seed (initialisation and batch order; the corpus is the same); the
+table gives mean ± standard deviation over the seeds. Prints a Markdown table (also written to
+``<out>/study.md`` with every run's numbers in ``study.json``).
 Latency is per single query on this machine; compare rows of one run only.
 """
 
@@ -23,6 +25,8 @@ import json
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -49,39 +53,49 @@ def main() -> int:
     ap.add_argument("--stride", type=int, default=4)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "ik-study")
     ap.add_argument("--only", help="comma-separated variant names")
+    ap.add_argument("--seeds", default="0,1,2", help="comma-separated training seeds (default 0,1,2)")
     args = ap.parse_args()
     names = list(VARIANTS) if not args.only else args.only.split(",")
+    seeds = [int(x) for x in args.seeds.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = {}
-    ref_file = args.out / f"{REFERENCE}.npz"
-    for name in names:
-        over, share = VARIANTS[name]
-        cfg = IkTrainConfig(epochs=args.epochs, stride=args.stride, **over)
-        out = args.out / f"{name}.npz"
-        t0 = time.perf_counter()
-        if not out.exists():
-            train_ik(cfg, out, args.out / f"{name}.ckpt", evaluate_test=False,
-                     mp_from=ref_file if share and ref_file.exists() else None, resume=True)
-        train_s = time.perf_counter() - t0
-        solver = IkSolver.load(out)
-        test = split(make_corpus(cfg.corpus, cfg.corpus_seed), cfg.corpus_seed)[2]
-        r = evaluate(solver, test, baselines=False)
-        rows[name] = {"config": over, "size_kb": out.stat().st_size / 1024, "params": solver.meta.get("nets", {}),
-                      "train_s": round(train_s, 1), "eval": r}
-        print(f"{name}: raw median {r['raw']['median_mm']:.2f} mm, jerk {r.get('jerk_ratio', float('nan')):.2f}×",
-              flush=True)
-    lines = ["| variant | file KB | raw median mm | raw p95 mm | filtered median mm | refined p99 mm | "
+    runs: dict[str, list[dict]] = {}
+    for seed in seeds:
+        ref_file = args.out / f"{REFERENCE}-s{seed}.npz"
+        for name in names:
+            over, share = VARIANTS[name]
+            cfg = IkTrainConfig(epochs=args.epochs, stride=args.stride, seed=seed, **over)
+            out = args.out / f"{name}-s{seed}.npz"
+            t0 = time.perf_counter()
+            if not out.exists():
+                train_ik(cfg, out, args.out / f"{name}-s{seed}.ckpt", evaluate_test=False,
+                         mp_from=ref_file if share and ref_file.exists() else None, resume=True)
+            train_s = time.perf_counter() - t0
+            solver = IkSolver.load(out)
+            test = split(make_corpus(cfg.corpus, cfg.corpus_seed), cfg.corpus_seed)[2]
+            r = evaluate(solver, test, baselines=False)
+            runs.setdefault(name, []).append({"seed": seed, "config": over, "size_kb": out.stat().st_size / 1024,
+                                              "train_s": round(train_s, 1), "eval": r})
+            print(f"{name} seed {seed}: raw median {r['raw']['median_mm']:.2f} mm, "
+                  f"jerk {r.get('jerk_ratio', float('nan')):.2f}x", flush=True)
+
+    def ms(name, get, fmt="{:.2f}"):
+        v = np.array([get(x["eval"]) for x in runs[name]], dtype=float)
+        return fmt.format(v.mean()) + (f" ± {fmt.format(v.std(ddof=1))}" if len(v) > 1 else "")
+
+    lines = [f"seeds {','.join(map(str, seeds))}; {args.epochs} epochs, window stride {args.stride}; mean ± sd", "",
+             "| variant | file KB | raw median mm | raw p95 mm | filtered median mm | refined p99 mm (max) | "
              "jerk × demos | pitch dev ° | single query ms |", "|---|---|---|---|---|---|---|---|---|"]
-    for name, row in rows.items():
-        r = row["eval"]
-        lines.append(f"| {name} | {row['size_kb']:.0f} | {r['raw']['median_mm']:.2f} | {r['raw']['p95_mm']:.2f} | "
-                     f"{r['filtered']['median_mm']:.2f} | {r['refined']['p99_mm']:.1e} | "
-                     f"{r.get('jerk_ratio', float('nan')):.2f} | {r['pitch_dev_deg']['median']:.2f} | "
-                     f"{r['latency_ms']['single']['median']:.3f} |")
+    for name in names:
+        worst = max(x["eval"]["refined"]["p99_mm"] for x in runs[name])
+        lines.append(f"| {name} | {runs[name][0]['size_kb']:.0f} | {ms(name, lambda r: r['raw']['median_mm'])} | "
+                     f"{ms(name, lambda r: r['raw']['p95_mm'])} | {ms(name, lambda r: r['filtered']['median_mm'])} | "
+                     f"{worst:.1e} | {ms(name, lambda r: r.get('jerk_ratio', np.nan))} | "
+                     f"{ms(name, lambda r: r['pitch_dev_deg']['median'])} | "
+                     f"{ms(name, lambda r: r['latency_ms']['single']['median'], '{:.3f}')} |")
     table = "\n".join(lines)
     print(table)
     (args.out / "study.md").write_text(table + "\n")
-    (args.out / "study.json").write_text(json.dumps(rows, indent=2, default=str))
+    (args.out / "study.json").write_text(json.dumps(runs, indent=2, default=str))
     return 0
 
 

@@ -66,6 +66,11 @@ class ArmTrackController:
         self.lead_in = float(lead_in)
         self.duration = self.lead_in + float(self.t[-1])
 
+    @property
+    def markers(self) -> np.ndarray:
+        """Points along the target path (every 50 ms) for renderers to draw."""
+        return self.p[::5]
+
     def target_at(self, tau: float) -> np.ndarray:
         """The trajectory's point at time ``tau`` (s from its start), linearly interpolated, held at the ends."""
         return np.array([np.interp(tau, self.t, self.p[:, k]) for k in range(3)])

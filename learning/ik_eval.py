@@ -9,7 +9,8 @@ For every frame the pipeline (`IkSolver`) is streamed as in the controller, and 
 - smoothness: RMS jerk per joint, the third difference d³q/dt³ at 100 Hz, against the demonstrated
   joint trajectories where they exist (the pitch rule of `ik_data.posture_pitch`), and the largest
   step per tick;
-- posture: |φ − φ_demo|, how far the chosen tool pitch is from the demonstrator's;
+- posture: |φ − φ_demo|, how far the chosen tool pitch is from the demonstrator's (`posture_pitch`
+  with the path's velocity);
 - latency: one query at a time (median, p99) and per query in a batch of 1000 windows, 5% of them
   out of reach (failures included);
 - ``unreachable``: targets outside the workspace, projected to the nearest reachable point.
@@ -26,7 +27,7 @@ import time
 import numpy as np
 
 from felis.learning import armkin
-from felis.learning.ik_data import DT, Trajectory, posture_pitch
+from felis.learning.ik_data import DT, Trajectory, path_velocity, posture_pitch
 from felis.learning.ik_solver import HISTORY, IkSolver
 
 JOINTS = ("joint1", "joint2", "joint3", "joint4")
@@ -70,7 +71,8 @@ def _summary(qs: list[np.ndarray], trajs: list[Trajectory], demo_jerk: np.ndarra
            "limit_violations": int(sum((~armkin.within_limits(q)).sum() for q in qs))}
     if demo_jerk is not None and np.all(demo_jerk > 0):
         out["jerk_ratio"] = float(np.sqrt((rms**2).mean() / (demo_jerk**2).mean()))
-    dev = [np.abs(armkin.pitch(q) - t_phi) for q, t_phi in zip(qs, (posture_pitch(t.p) for t in trajs), strict=True)]
+    rule = (posture_pitch(t.p, path_velocity(t.p)) for t in trajs)
+    dev = [np.abs(armkin.pitch(q) - t_phi) for q, t_phi in zip(qs, rule, strict=True)]
     out["pitch_dev_deg"] = {"median": float(np.degrees(np.median(np.concatenate(dev)))),
                             "p95": float(np.degrees(np.percentile(np.concatenate(dev), 95)))}
     return out
@@ -81,9 +83,10 @@ def _latency(times_s: list[float]) -> dict:
     return {"median": float(np.median(t)), "p99": float(np.percentile(t, 99))}
 
 
-def closed_form_rule(p: np.ndarray) -> np.ndarray:
-    """The demonstrator: the closed form with the pitch rule, elbow up; DLS where that fails."""
-    q, ok = armkin.ik_closed(p, posture_pitch(p), True)
+def closed_form_rule(p: np.ndarray, velocity: np.ndarray | None = None) -> np.ndarray:
+    """The demonstrator: the closed form with the pitch rule at ``velocity``, elbow up; DLS where that
+    fails. (In `evaluate` the velocity is the path's central difference: it knows the next frame.)"""
+    q, ok = armkin.ik_closed(p, posture_pitch(p, velocity), True)
     bad = ~(ok & armkin.within_limits(q))
     if bad.any():
         q = np.array(q, copy=True)
@@ -174,9 +177,9 @@ def evaluate(solver: IkSolver, trajs: list[Trajectory], *, seed: int = 0, batch:
         out["baselines"] = {}
         cf_q, cf_t = [], []
         for t in trajs:
-            for target in t.p:
+            for target, vel in zip(t.p, path_velocity(t.p), strict=True):
                 t0 = time.perf_counter()
-                cf_q.append(closed_form_rule(target[None])[0])
+                cf_q.append(closed_form_rule(target[None], vel[None])[0])
                 cf_t.append(time.perf_counter() - t0)
         cf = np.array(cf_q)
         cf_split = np.split(cf, offsets[1:-1])

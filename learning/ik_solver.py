@@ -17,10 +17,12 @@ For each control tick i with tool-point target T_i (m, base frame):
    φ̇_i = φ̇_{i−1} + Δt (ω² (φ_in − φ_{i−1}) − 2ω φ̇_{i−1}),  φ_i = φ_{i−1} + Δt φ̇_i,
    whose state is read back from the last two poses sent (φ̇_{i−1} = (φ_{i−1} − φ_{i−2}) / Δt), so a
    batch of independent queries needs nothing else. The nets' outputs are continuous but not smooth
-   to the third derivative: on held-out demonstrations the shipped nets' RMS joint jerk is 6.8× the
-   demonstrations' without this stage, 0.98× with it at 5 Hz (median pitch off the demonstrator's
-   0.16° → 1.3°, p95 0.6° → 6.9°: the filter's lag on fast pitch changes; 3 Hz: 0.80×, 2.4°; 8 Hz:
-   1.6×, 0.7°). Position accuracy is untouched: step 6 is exact for any pitch.
+   to the third derivative: on the 40 held-out demonstrations the shipped nets' RMS joint jerk is
+   5.9× the demonstrations' without this stage and 0.70× with it at 5 Hz, for a median pitch off the
+   demonstrator's of 0.17° → 1.17° (p95 0.8° → 6.3°: the lag on fast pitch changes); 3 Hz gives
+   0.48× and 2.0°, 8 Hz 1.31× and 0.72°. Without the mean filter (``use_filter=False``) the 5 Hz stage
+   alone gives 0.94× and 0.67°: the filter's past poses add lag of their own. Position accuracy is
+   untouched: step 6 is exact for any pitch.
 6. **Refinement** (`armkin.refine`): the closed form with the smoothed pitch and the filtered pose's
    elbow branch (exact to machine precision), else the nearest feasible pitch, else the nearest
    reachable point by DLS within the joint limits, flagged unreachable.

@@ -4,7 +4,8 @@
 frame time (``fps``), from the model's ``track`` camera when there is one. Frames are written as
 they come to a temporary file next to the target, renamed into place by `close` (a run that fails
 half-way leaves no partial video). A ``.png`` target is a film strip: ``strip`` frames evenly
-spaced over the run, side by side.
+spaced over the run, side by side. ``markers`` (n, 3) world points are drawn as small orange spheres
+in every frame (e.g. a tracking controller's target path).
 
 Needs an OpenGL context: on a machine without a display set ``MUJOCO_GL=egl`` (the CLI does).
 """
@@ -41,7 +42,7 @@ class VideoRecorder:
     """Renders frames during a run; ``close()`` writes the file."""
 
     def __init__(self, robot: MujocoRobot, path: str | Path, fps: float = 30.0, width: int = 640,
-                 height: int = 480, camera: str = "track", strip: int = 6):
+                 height: int = 480, camera: str = "track", strip: int = 6, markers: np.ndarray | None = None):
         self.path = check_video_path(path)
         if not 1 <= fps <= 120:
             raise ParameterError(f"fps must be within 1…120, got {fps}")
@@ -53,6 +54,7 @@ class VideoRecorder:
             raise RenderError(f"cannot render offscreen ({e}); set MUJOCO_GL=egl, or run `felis doctor`") from None
         cam = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, camera)
         self.camera: int | str = cam if cam >= 0 else -1
+        self.markers = None if markers is None else np.asarray(markers, dtype=float).reshape(-1, 3)
         self.frames: list[np.ndarray] = []  # kept only for PNG strips
         self.count = 0
         self._next = None
@@ -74,6 +76,14 @@ class VideoRecorder:
 
     def capture(self) -> np.ndarray:
         self.renderer.update_scene(self.robot.data, camera=self.camera)
+        if self.markers is not None:
+            scn = self.renderer.scene
+            for p in self.markers:
+                if scn.ngeom >= scn.maxgeom:
+                    break
+                mujoco.mjv_initGeom(scn.geoms[scn.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE, np.array([0.003, 0, 0]),
+                                    p, np.eye(3).ravel(), np.array([1.0, 0.55, 0.1, 0.9], dtype=np.float32))
+                scn.ngeom += 1
         return self.renderer.render()
 
     def __call__(self, state: State, command: Command) -> None:

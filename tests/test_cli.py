@@ -304,7 +304,8 @@ def test_demo(tmp_path):
     assert len(runs) == 1 and re.fullmatch(r"\d{8}-\d{6}(-\d+)?", runs[0].name), runs
     run = runs[0]
     assert {p.name for p in run.iterdir()} == {"drop.mcap", "drop.mp4", "drop.png", "stand_dxl.mcap",
-                                              "stand_dxl.png"}  # no temporaries
+                                              "stand_dxl.png", "arm_figure8.mcap", "arm_figure8.mp4",
+                                              "arm_figure8.png"}  # no temporaries
     mp4 = (run / "drop.mp4").read_bytes()
     assert len(mp4) > 1000 and mp4[4:8] == b"ftyp"
     assert (run / "drop.png").read_bytes()[:8] == PNG_MAGIC
@@ -332,6 +333,14 @@ def test_demo(tmp_path):
     assert (verdict.group(1) == "on its feet") == on_feet
     assert str(run.relative_to(tmp_path)) in text  # tells where the outputs are
     assert "Traceback" not in r.stderr
+
+    # part 3: the arm tracks a figure eight with the learned IK: commands exact, the measured tool near
+    arm = log_info(run / "arm_figure8.mcap")
+    assert arm["robot"] == "arm" and arm["complete"] is True
+    track = arm["summary"]["controller"]
+    assert track["frames"] > 500 and track["unreachable"] == 0 and track["invalid"] == 0
+    assert track["command_error"]["max_mm"] < 1e-6 and track["tracking_error"]["median_mm"] < 12
+    assert (run / "arm_figure8.mp4").read_bytes()[4:8] == b"ftyp"
 
 
 def test_plot_file_mode_like_other_outputs(tmp_path):

@@ -80,7 +80,7 @@ def test_rule_feasible_and_smooth_on_corpus(corpus):
     for tr in corpus:
         assert D.in_workspace(tr.p).all()
         assert armkin.within_limits(tr.q, tol=0).all()
-        phi = D.posture_pitch(tr.p)
+        phi = D.posture_pitch(tr.p, D.path_velocity(tr.p))
         assert np.abs(np.diff(phi)).max() < 0.05  # rad per frame: no jumps
         assert np.abs(np.diff(tr.q, axis=0)).max() <= D.QD_MAX * D.DT + 1e-12
 
@@ -88,8 +88,21 @@ def test_rule_feasible_and_smooth_on_corpus(corpus):
 def test_demo_joints_reproduce_points(corpus):
     for tr in corpus:
         assert np.abs(armkin.fk(tr.q) - tr.p).max() < 1e-9
-        assert np.allclose(armkin.pitch(tr.q), D.posture_pitch(tr.p), atol=1e-9)
+        assert np.allclose(armkin.pitch(tr.q), D.posture_pitch(tr.p, D.path_velocity(tr.p)), atol=1e-9)
         assert armkin.elbow_up(tr.q).all()
+
+
+def test_posture_rule_leads_vertical_motion():
+    p = np.array([0.2, 0.0, 0.15])
+    rest = D.posture_pitch(p)
+    down = D.posture_pitch(p, np.array([0.0, 0.0, -0.1]))
+    up = D.posture_pitch(p, np.array([0.0, 0.0, 0.1]))
+    assert down > rest > up
+    w = D.smootherstep((np.linalg.norm(p - armkin.SHOULDER) / armkin.REACH - D.D_NEAR) / (D.D_FAR - D.D_NEAR))
+    assert down - rest == pytest.approx((1 - w) * D.K_LEAD * np.tanh(0.1 / D.V_LEAD), abs=1e-12)
+    assert D.posture_pitch(p, np.array([0.3, -0.2, 0.0])) == pytest.approx(rest)  # horizontal motion: no lead
+    np.testing.assert_allclose(D.path_velocity(np.outer(np.arange(5) * D.DT, [1.0, 2.0, 3.0])),
+                               np.tile([1.0, 2.0, 3.0], (5, 1)), atol=1e-12)
 
 
 def test_demo_joints_names_first_infeasible_frame():

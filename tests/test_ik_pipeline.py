@@ -124,6 +124,19 @@ def test_felis_run_arm_track_through_the_virtual_bus(tmp_path, capsys):
     assert s["tracking_error"]["median_mm"] < 15.0
 
 
+def test_felis_ik_demos_writes_the_corpus_and_its_test_split(tmp_path, capsys):
+    from felis.learning.ik_data import load_corpus, read_trajectory_csv
+
+    assert main(["ik", "demos", "--out", str(tmp_path / "d"), "--corpus", "10", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    corpus = load_corpus(tmp_path / "d" / "corpus.npz")
+    ref = make_corpus(10, 1)
+    assert len(corpus) == 10 and all(np.array_equal(a.p, b.p) for a, b in zip(corpus, ref, strict=True))
+    tests = sorted((tmp_path / "d").glob("test_*.csv"))
+    assert len(tests) == len(summary["split"]["test"]) >= 1
+    np.testing.assert_allclose(read_trajectory_csv(tests[0]).p, ref[summary["split"]["test"][0]].p)
+
+
 def test_felis_eval_ik_on_a_csv_file(tmp_path, capsys):
     csv = write_trajectory_csv(tmp_path / "c.csv", builtin_trajectory("circle", duration=3.0))
     assert main(["eval", "ik", "--trajectory", str(csv), "--json", "--no-baselines"]) == 0
@@ -172,3 +185,29 @@ def test_training_is_deterministic_on_a_tiny_corpus(tmp_path):
         for key, arr in a[net][1].items():
             np.testing.assert_array_equal(arr, b[net][1][key])
     assert (tmp_path / "a.results.json").exists() and (tmp_path / "a.curves.png").exists()
+
+
+def test_eval_flags_unreachable_targets_in_a_file_and_carries_on(tmp_path, capsys):
+    from felis.learning.ik_data import Trajectory
+
+    traj = builtin_trajectory("circle", duration=2.0)
+    p = traj.p.copy()
+    p[100:110] = [0.9, 0.0, 0.2]  # 0.9 m away: outside the 0.38 m reach
+    csv = write_trajectory_csv(tmp_path / "far.csv", Trajectory(t=traj.t, p=p, q=None, kind="file", ident=-1))
+    assert main(["eval", "ik", "--trajectory", str(csv), "--json", "--no-baselines"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["unreachable"]["count"] >= 10 and {f["frame"] for f in r["unreachable"]["frames"]} >= set(range(100, 110))
+    assert r["refined"]["max_mm"] < 1e-6 and r["limit_violations"] == 0  # the reachable ones stay exact
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--trajectory", "spiral"], "use circle or figure8"),
+    (["--trajectory", "nope.csv"], "nope.csv"),
+    (["--robot", "cat"], "lacks joint1"),
+])
+def test_arm_track_bad_input_is_one_line(tmp_path, capsys, monkeypatch, argv, needle):
+    monkeypatch.chdir(tmp_path)
+    args = ["run", "arm-track", *(["--robot", "arm"] if "--robot" not in argv else []), *argv]
+    assert main(args) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and needle in err, err

@@ -116,7 +116,8 @@ def run_episode(ep: Episode) -> EpisodeResult:
             if ep.video is not None:
                 from felis.sim.render import VideoRecorder
 
-                video = VideoRecorder(robot, ep.video, fps=ep.fps, width=ep.size[0], height=ep.size[1])
+                video = VideoRecorder(robot, ep.video, fps=ep.fps, width=ep.size[0], height=ep.size[1],
+                                      markers=getattr(controller, "markers", None))
                 monitors.insert(0, video)
             if ep.log is not None:
                 from felis.runlog import RunLog
@@ -140,6 +141,8 @@ def run_episode(ep: Episode) -> EpisodeResult:
             summary = {"run": report.as_dict()}
             if landing is not None:
                 summary["landing"] = landing.as_dict()
+            if _summary(controller) is not None:
+                summary["controller"] = _summary(controller)
             log.close(summary)
             files["log"] = str(ep.log)
         if video is not None:
@@ -201,7 +204,8 @@ def run_hardware(ep: Episode) -> EpisodeResult:
                 log.close({"error": "run aborted"})
             raise
         if log is not None:
-            log.close({"run": report.as_dict()})
+            log.close({"run": report.as_dict(), **({"controller": _summary(controller)}
+                                                   if _summary(controller) is not None else {})})
             files["log"] = str(ep.log)
     if ep.plot is not None and ep.log is not None:
         from felis.plotlog import plot_log

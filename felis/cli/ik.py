@@ -19,10 +19,23 @@ from felis.errors import ParameterError
 DEFAULT_OUT = Path("runs/train-ik/ik.npz")
 
 
-def register(train_sub, eval_sub, parser_class) -> None:
+def register(train_sub, eval_sub, parser_class, sub=None) -> None:
     from felis.learning.ik_run import IkTrainConfig
 
     d = IkTrainConfig()
+    if sub is not None:
+        ik = sub.add_parser("ik", help="the arm's IK demonstrations: generate, export")
+        iksub = ik.add_subparsers(dest="ik_command", metavar="IK_COMMAND", parser_class=parser_class)
+        ik.set_defaults(func=lambda a: ik.error("missing sub-command"))
+        dm = iksub.add_parser("demos", help="generate the deterministic demonstration corpus (what `felis train ik` "
+                              "trains on) to .npz, and its splits as CSV files for `felis eval ik`")
+        dm.add_argument("--out", type=Path, required=True, help="directory to write corpus.npz (and CSVs) into")
+        dm.add_argument("--corpus", type=int, default=d.corpus, help=f"trajectories (default {d.corpus})")
+        dm.add_argument("--corpus-seed", type=int, default=d.corpus_seed, help=f"seed (default {d.corpus_seed})")
+        dm.add_argument("--csv", choices=["none", "test", "all"], default="test",
+                        help="also write trajectories as CSV t,x,y,z,q1..q4 (default: the test split)")
+        dm.add_argument("--json", action="store_true", help="print a summary as JSON")
+        dm.set_defaults(func=cmd_ik_demos)
     t = train_sub.add_parser("ik", help="train the arm's IK nets (Motion Predictor, Posture Estimator) on "
                              "generated demonstrations")
     t.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"weights file (.npz; default {DEFAULT_OUT})")
@@ -57,6 +70,33 @@ def register(train_sub, eval_sub, parser_class) -> None:
     e.add_argument("--no-baselines", action="store_true", help="skip the closed-form and DLS solvers")
     e.add_argument("--json", action="store_true", help="print the results as JSON")
     e.set_defaults(func=cmd_eval_ik)
+
+
+def cmd_ik_demos(args) -> int:
+    from felis.learning.ik_data import make_corpus, save_corpus, split, write_trajectory_csv
+
+    if args.corpus < 3:
+        raise ParameterError(f"--corpus must be at least 3 trajectories, got {args.corpus}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"{out} exists and is not a directory")
+    corpus = make_corpus(args.corpus, args.corpus_seed)
+    parts = dict(zip(("train", "val", "test"), split(corpus, args.corpus_seed), strict=True))
+    out.mkdir(parents=True, exist_ok=True)
+    files = [str(save_corpus(out / "corpus.npz", corpus))]
+    for name, trajs in parts.items():
+        if args.csv == "all" or (args.csv == "test" and name == "test"):
+            for t in trajs:
+                files.append(str(write_trajectory_csv(out / f"{name}_{t.ident:04d}_{t.kind}.csv", t)))
+    summary = {"trajectories": len(corpus), "frames": int(sum(len(t.p) for t in corpus)),
+               "split": {k: [t.ident for t in v] for k, v in parts.items()}, "files": len(files), "out": str(out)}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"{summary['trajectories']} trajectories, {summary['frames']} frames at 100 Hz → {out}/corpus.npz; "
+              f"{len(files) - 1} CSV files; split train/val/test {len(parts['train'])}/{len(parts['val'])}/"
+              f"{len(parts['test'])} by whole trajectories")
+    return 0
 
 
 def _check_out(path: Path) -> None:

@@ -227,7 +227,8 @@ def cmd_run(args) -> int:
             duration = 1.5 + float(traj.t[-1] - traj.t[0]) + 0.5
     elif args.trajectory is not None or args.weights is not None:
         raise ParameterError("--trajectory and --weights belong to the arm-track controller")
-    res = _episode(args, robot=args.robot, controller=args.controller, duration=duration or 3.0, log=args.log,
+    duration = 3.0 if duration is None else duration
+    res = _episode(args, robot=args.robot, controller=args.controller, duration=duration, log=args.log,
                    clock="wall" if backend == "dxl" else args.clock, rate_hz=args.rate, backend=backend,
                    port=args.port, baud=args.baud, imu_port=args.imu_port, servo_params=args.servo_params,
                    robot_id=args.robot_id, calibration=args.calibration, yes=args.yes, controller_options=options)
@@ -353,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     evl = sub.add_parser("eval", help="evaluate learned controllers: ik")
     evalsub = evl.add_subparsers(dest="eval_command", metavar="WHAT", parser_class=_Parser)
     evl.set_defaults(func=lambda a: _missing(evl))
-    __import__("felis.cli.ik", fromlist=["register"]).register(trainsub, evalsub, _Parser)  # train/eval ik
+    __import__("felis.cli.ik", fromlist=["register"]).register(trainsub, evalsub, _Parser, sub)  # train/eval ik
 
     sim = sub.add_parser("sim", help="simulation: drop, render, view")
     simsub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", parser_class=_Parser)
