@@ -14,13 +14,14 @@ from felis.errors import ParameterError
 from felis.hal import Controller
 
 
-def _arm_track(trajectory="figure8", weights=None, lead_in: float = 1.5) -> Controller:
+def _arm_track(trajectory="figure8", weights=None, lead_in: float | None = None) -> Controller:
     """The arm following a tool-point trajectory (a builtin name, a CSV file or a Trajectory) with the
     learned IK pipeline (weights: the shipped ones unless a file is given)."""
-    from felis.controllers.arm_track import ArmTrackController, trajectory_from
+    from felis.controllers.arm_track import LEAD_IN, ArmTrackController, trajectory_from
     from felis.learning.ik_solver import IkSolver
 
-    return ArmTrackController(trajectory_from(trajectory), IkSolver.load(weights), lead_in=lead_in)
+    return ArmTrackController(trajectory_from(trajectory), IkSolver.load(weights),
+                              lead_in=LEAD_IN if lead_in is None else lead_in)
 
 
 CONTROLLERS: dict[str, Callable[..., Controller]] = {

@@ -22,8 +22,15 @@ from felis.hal import Command, State
 from felis.learning import armkin
 from felis.spec import RobotSpec
 
-ARM_JOINTS = ("joint1", "joint2", "joint3", "joint4")
+ARM_JOINTS = armkin.JOINTS
 FRAME = 0.01  # s: the pipeline's frame period (100 Hz)
+LEAD_IN = 1.5  # s: minimum-jerk move to the first point's solution
+SETTLE = 0.5  # s: holding the last pose at the end of a run
+
+
+def run_time(trajectory, lead_in: float = LEAD_IN) -> float:
+    """Seconds a run needs to follow ``trajectory``: the lead-in, the trajectory, and `SETTLE`."""
+    return lead_in + float(trajectory.t[-1] - trajectory.t[0]) + SETTLE
 
 
 def trajectory_from(source):
@@ -47,7 +54,7 @@ class ArmTrackController:
 
     name = "arm-track"
 
-    def __init__(self, trajectory, solver=None, lead_in: float = 1.5):
+    def __init__(self, trajectory, solver=None, lead_in: float = LEAD_IN):
         t = np.asarray(trajectory.t, dtype=float)
         p = np.asarray(trajectory.p, dtype=float)
         if p.ndim != 2 or p.shape[1] != 3 or len(t) != len(p) or len(p) < 2:

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+JOINTS = ("joint1", "joint2", "joint3", "joint4")  # the arm's joints these functions take, in order
 SHOULDER = np.array([0.012, 0.0, 0.017 + 0.0595])
 L1 = float(np.hypot(0.024, 0.128))
 BETA = float(np.arctan2(0.024, 0.128))

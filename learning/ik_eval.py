@@ -30,7 +30,7 @@ from felis.learning import armkin
 from felis.learning.ik_data import DT, Trajectory, path_velocity, posture_pitch
 from felis.learning.ik_solver import HISTORY, IkSolver
 
-JOINTS = ("joint1", "joint2", "joint3", "joint4")
+JOINTS = armkin.JOINTS
 
 
 def error_stats(err_m: np.ndarray) -> dict:
@@ -64,10 +64,13 @@ def _smoothness(qs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return rms, max_step
 
 
-def _summary(qs: list[np.ndarray], trajs: list[Trajectory], demo_jerk: np.ndarray | None) -> dict:
+def _summary(qs: list[np.ndarray], trajs: list[Trajectory], demo_jerk: np.ndarray | None,
+             mask: np.ndarray | None = None) -> dict:
+    """Error (over the frames in ``mask``: the reachable ones), smoothness, limits and posture of a solver."""
     err = np.concatenate([np.linalg.norm(armkin.fk(q) - t.p, axis=-1) for q, t in zip(qs, trajs, strict=True)])
     rms, max_step = _smoothness(qs)
-    out = {"refined": error_stats(err), "rms_jerk": _per_joint(rms), "max_step_rad": _per_joint(max_step),
+    out = {"refined": error_stats(err if mask is None else err[mask]), "rms_jerk": _per_joint(rms),
+           "max_step_rad": _per_joint(max_step),
            "limit_violations": int(sum((~armkin.within_limits(q)).sum() for q in qs))}
     if demo_jerk is not None and np.all(demo_jerk > 0):
         out["jerk_ratio"] = float(np.sqrt((rms**2).mean() / (demo_jerk**2).mean()))
@@ -157,9 +160,7 @@ def evaluate(solver: IkSolver, trajs: list[Trajectory], *, seed: int = 0, batch:
     demo_jerk = _rms([jerk(q) for q in demos]) if len(demos) == len(trajs) else None
     out = {"trajectories": len(trajs), "frames": int(offsets[-1]),
            "raw": error_stats(err(raw)[reach_mask]), "filtered": error_stats(err(filt)[reach_mask])}
-    summary = _summary(ref, trajs, demo_jerk)
-    summary["refined"] = error_stats(err(ref)[reach_mask])  # reachable targets; the others are flagged
-    out.update(summary)
+    out.update(_summary(ref, trajs, demo_jerk, reach_mask))  # reachable targets; the others are flagged
     out["raw_limit_violations"] = raw_violations
     if demo_jerk is not None:
         out["demo_rms_jerk"] = _per_joint(demo_jerk)
@@ -183,7 +184,7 @@ def evaluate(solver: IkSolver, trajs: list[Trajectory], *, seed: int = 0, batch:
                 cf_t.append(time.perf_counter() - t0)
         cf = np.array(cf_q)
         cf_split = np.split(cf, offsets[1:-1])
-        b = _summary(cf_split, trajs, demo_jerk)
+        b = _summary(cf_split, trajs, demo_jerk, reach_mask)
         b["latency_ms"] = {"single": _latency(cf_t)}
         out["baselines"]["closed_form_rule"] = b
         dq, dt_ = [], []
@@ -191,7 +192,7 @@ def evaluate(solver: IkSolver, trajs: list[Trajectory], *, seed: int = 0, batch:
             q, tt = dls_tracker(t.p)
             dq.append(q)
             dt_ += tt
-        b = _summary(dq, trajs, demo_jerk)
+        b = _summary(dq, trajs, demo_jerk, reach_mask)
         b["latency_ms"] = {"single": _latency(dt_)}
         out["baselines"]["dls"] = b
     return out

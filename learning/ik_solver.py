@@ -107,6 +107,7 @@ class IkSolver:
         if not (np.isfinite(pitch_hz) and 0 <= pitch_hz <= 20):
             raise ValueError(f"pitch smoothing must be within 0…20 Hz (0: off), got {pitch_hz}")
         self.pitch_hz = float(pitch_hz)
+        self.meta: dict = {}  # the weights file's metadata (corpus, configuration, history) when loaded
         self.reset()
 
     @classmethod

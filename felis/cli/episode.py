@@ -129,6 +129,7 @@ def run_episode(ep: Episode) -> EpisodeResult:
                 log = RunLog(ep.log, spec, meta)
             report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock=ep.clock,
                               log=log, monitors=monitors)
+            ctl = _summary(controller)
             if info is not None:
                 landing = assess_landing(robot, recorder)
         except BaseException:
@@ -141,8 +142,8 @@ def run_episode(ep: Episode) -> EpisodeResult:
             summary = {"run": report.as_dict()}
             if landing is not None:
                 summary["landing"] = landing.as_dict()
-            if _summary(controller) is not None:
-                summary["controller"] = _summary(controller)
+            if ctl is not None:
+                summary["controller"] = ctl
             log.close(summary)
             files["log"] = str(ep.log)
         if video is not None:
@@ -151,10 +152,11 @@ def run_episode(ep: Episode) -> EpisodeResult:
         from felis.plotlog import plot_log
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
-    return EpisodeResult(report=report, landing=landing, drop=info, files=files, controller=_summary(controller))
+    return EpisodeResult(report=report, landing=landing, drop=info, files=files, controller=ctl)
 
 
 def _summary(controller) -> dict | None:
+    """The controller's own account of the run (e.g. arm-track's tracking error), if it keeps one."""
     return controller.summary() if callable(getattr(controller, "summary", None)) else None
 
 
@@ -199,20 +201,19 @@ def run_hardware(ep: Episode) -> EpisodeResult:
             monitors = [] if ep.progress is None else [ep.progress]
             report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock="wall", log=log,
                               monitors=monitors)
+            ctl = _summary(controller)
         except BaseException:
             if log is not None:
                 log.close({"error": "run aborted"})
             raise
         if log is not None:
-            log.close({"run": report.as_dict(), **({"controller": _summary(controller)}
-                                                   if _summary(controller) is not None else {})})
+            log.close({"run": report.as_dict(), **({"controller": ctl} if ctl is not None else {})})
             files["log"] = str(ep.log)
     if ep.plot is not None and ep.log is not None:
         from felis.plotlog import plot_log
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
-    return EpisodeResult(report=report, landing=None, drop=None, files=files, warnings=ep.warnings,
-                         controller=_summary(controller))
+    return EpisodeResult(report=report, landing=None, drop=None, files=files, warnings=ep.warnings, controller=ctl)
 
 
 def _connect_checks(ep: Episode, spec, port: str):

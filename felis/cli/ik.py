@@ -162,12 +162,13 @@ def cmd_eval_ik(args) -> int:
         n, seed = int(corpus.get("trajectories", 400)), int(corpus.get("seed", 1))
         trajs = split(make_corpus(n, seed), seed)[2]
     else:
+        from felis.errors import TrajectoryError
         from felis.learning.ik_data import demo_joints, read_trajectory_csv
 
         traj = read_trajectory_csv(args.trajectory)
         try:  # the demonstrator's joints, when the pitch rule can reach every point, for the jerk ratio
             traj.q = demo_joints(traj.p)
-        except Exception:  # noqa: BLE001 - no demonstration to compare with; the rest still runs
+        except TrajectoryError:  # some point has no demonstrated pose: no ratio; the rest still runs
             traj.q = None
         trajs = [traj]
     res = evaluate(solver, trajs, seed=args.seed, baselines=not args.no_baselines)

@@ -219,12 +219,12 @@ def cmd_run(args) -> int:
     options: dict = {}
     duration = args.duration
     if args.controller == "arm-track":
-        from felis.controllers.arm_track import trajectory_from
+        from felis.controllers.arm_track import run_time, trajectory_from
 
         traj = trajectory_from(args.trajectory or "figure8")
         options = {"trajectory": traj, "weights": args.weights}
-        if duration is None:  # lead-in, the trajectory, half a second to settle
-            duration = 1.5 + float(traj.t[-1] - traj.t[0]) + 0.5
+        if duration is None:
+            duration = run_time(traj)
     elif args.trajectory is not None or args.weights is not None:
         raise ParameterError("--trajectory and --weights belong to the arm-track controller")
     duration = 3.0 if duration is None else duration
@@ -285,10 +285,10 @@ def cmd_demo(args) -> int:
     _print_result(res, console)
     console.print("[bold]felis demo 3/3[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
                   "Posture Estimator → mean filter → exact refinement (MuJoCo)")
-    from felis.controllers.arm_track import trajectory_from
+    from felis.controllers.arm_track import run_time, trajectory_from
 
     eight = trajectory_from("figure8")
-    arm_res = _episode(args, robot="arm", controller="arm-track", duration=1.5 + float(eight.t[-1]) + 0.5,
+    arm_res = _episode(args, robot="arm", controller="arm-track", duration=run_time(eight),
                        controller_options={"trajectory": eight}, log=run_dir / "arm_figure8.mcap",
                        video=None if args.no_video else run_dir / "arm_figure8.mp4",
                        plot=run_dir / "arm_figure8.png", meta={"demo": True})
