@@ -57,13 +57,29 @@ class Faults:
 
 
 @dataclass(frozen=True)
+class Truth:
+    """What only a simulator knows exactly, in the world frame (z up, floor at z = 0).
+
+    com / com_vel: the robot's centre of mass (m) and its velocity (m/s); feet: foot body centres
+    (k, 3) and foot_force: their normal contact forces (N), both in ``RobotSpec.sensors.contacts``
+    order. Monitors use it where present and estimate the same quantities on hardware.
+    """
+
+    com: np.ndarray
+    com_vel: np.ndarray
+    feet: np.ndarray
+    foot_force: np.ndarray
+
+
+@dataclass(frozen=True)
 class State:
     """What the robot reports at one tick.
 
     t: time (s) since connect; q: joint positions (rad; m for prismatic); dq: velocities;
     effort: joint torques (N·m) estimated from servo current, None where not reported;
     imu / contacts (bool per foot in `RobotSpec.sensors.contacts` order) / height (m, waist above
-    ground): None when the robot has no such sensor or the backend cannot know it.
+    ground): None when the robot has no such sensor or the backend cannot know it; truth: exact
+    CoM and feet from a simulator (`Truth`), None on hardware.
     """
 
     t: float
@@ -74,6 +90,7 @@ class State:
     contacts: np.ndarray | None = None
     height: float | None = None
     faults: Faults | None = None
+    truth: Truth | None = None
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 
 from felis.errors import FelisError, SimulationError
-from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State
+from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State, Truth
 from felis.servos import servo_model
 from felis.sim.servo import ServoParams, quantization_steps, servo_params
 from felis.spec import RobotSpec
@@ -212,6 +212,12 @@ class MujocoRobot(RobotBase):
             if sid < 0:
                 raise ModelMismatch(f"{self._model_file.name}: no height site {sens.height!r}")
             self._height_site = sid
+        # ground truth for monitors (`felis.hal.Truth`): a floating robot with feet
+        self._truth_root = None
+        free = np.flatnonzero(m.jnt_type == mujoco.mjtJoint.mjJNT_FREE)
+        if free.size and self._touch is not None:
+            self._truth_root = int(m.jnt_bodyid[free[0]])
+            self._feet = np.array([mujoco.mj_name2id(m, O.mjOBJ_BODY, f) for f in sens.contacts])
 
     # ------------------------------------------------------------------ torque
     def _set_torque(self, mask: np.ndarray) -> None:
@@ -252,8 +258,14 @@ class MujocoRobot(RobotBase):
             imu = Imu(quat=v[0:4], gyro=v[4:7], accel=v[7:10])
         contacts = None if self._touch is None else sd[self._touch] > TOUCH_THRESHOLD_N
         height = None if self._height_site is None else float(d.site_xpos[self._height_site, 2])
+        truth = None
+        if self._truth_root is not None:
+            mujoco.mj_subtreeVel(self.model, d)
+            b = self._truth_root
+            truth = Truth(com=d.subtree_com[b].copy(), com_vel=d.subtree_linvel[b].copy(),
+                          feet=d.xpos[self._feet], foot_force=sd[self._touch])
         return State(t=float(d.time), q=q, dq=dq, effort=effort, imu=imu, contacts=contacts,
-                     height=height, faults=self._faults)
+                     height=height, faults=self._faults, truth=truth)
 
     def _write(self, command: Command) -> Command:
         q = np.minimum(np.maximum(command.q, self._lower), self._upper)
