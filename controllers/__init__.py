@@ -24,12 +24,43 @@ def _arm_track(trajectory="figure8", weights=None, lead_in: float | None = None)
                               lead_in=LEAD_IN if lead_in is None else lead_in)
 
 
+def _step_in_place(frequency_hz: float = 2.0, lift: float = 0.5) -> Controller:
+    """The cat trotting in place (diagonal pairs in turn)."""
+    from felis.controllers.stepping import SteppingController
+
+    return SteppingController(frequency_hz=frequency_hz, lift=lift)
+
+
+def _balance(base: str = "stand", reaction: str = "none", body=None, selector=None) -> Controller:
+    """A base controller (stand, step-in-place) guarded by the XCoM balance monitor and a protective
+    reaction (none, brace, crouch, step, or selector: the shipped strategy selector; ``selector`` a
+    selector file). ``body`` is the robot's `felis.bodymodel.BodyModel`; the CLI passes it in."""
+    from felis.controllers.balance import BalanceMonitor
+    from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController
+
+    if body is None:
+        raise ParameterError("controller 'balance' needs the robot's body model (the felis command provides it)")
+    if base not in ("stand", "step-in-place"):
+        raise ParameterError(f"balance: base must be stand or step-in-place, got {base!r}")
+    if reaction == "selector":
+        from felis.learning.balance_select import load_selector
+
+        react = load_selector(selector, feature_names=FEATURES)
+    elif reaction in REACTIONS:
+        react = reaction
+    else:
+        raise ParameterError(f"balance: unknown reaction {reaction!r}; known: {', '.join(REACTIONS)}, selector")
+    return ReactiveController(make_controller(base), BalanceMonitor(body), react)
+
+
 CONTROLLERS: dict[str, Callable[..., Controller]] = {
     "hold": lambda: PoseController("hold"),
     "stand": lambda: PoseController("stand", duration=0.5),
     "sit": lambda: PoseController("sit", duration=1.5),
     "zero": lambda: PoseController("zero", duration=1.0),
     "arm-track": _arm_track,
+    "step-in-place": _step_in_place,
+    "balance": _balance,
 }
 
 

@@ -88,6 +88,22 @@ def _check(ep: Episode) -> None:
             check_target(Path(p), what, ParameterError)
 
 
+def _controller(ep: Episode, spec):
+    """The episode's controller; one that needs the robot's body model (the balance monitor) gets it
+    from the MJCF here, the one place that wires simulation data into controllers."""
+    import inspect
+
+    from felis.controllers import CONTROLLERS
+
+    options = dict(ep.controller_options)
+    factory = CONTROLLERS.get(ep.controller)
+    if factory is not None and "body" in inspect.signature(factory).parameters and "body" not in options:
+        from felis.sim.bodymodel import load_body_model
+
+        options["body"] = load_body_model(spec)
+    return make_controller(ep.controller, **options)
+
+
 def run_episode(ep: Episode) -> EpisodeResult:
     if ep.backend == "dxl":
         return run_hardware(ep)
@@ -98,7 +114,7 @@ def run_episode(ep: Episode) -> EpisodeResult:
     from felis.sim.scenarios import drop
 
     spec = load_spec(ep.robot)
-    controller = make_controller(ep.controller, **ep.controller_options)
+    controller = _controller(ep, spec)
     _check(ep)
     servo = None
     if ep.servo_params is not None:
@@ -168,7 +184,7 @@ def run_hardware(ep: Episode) -> EpisodeResult:
     from felis.drivers.robot import DynamixelRobot
 
     spec = load_spec(ep.robot)
-    controller = make_controller(ep.controller, **ep.controller_options)
+    controller = _controller(ep, spec)
     if ep.drop is not None or ep.video is not None:
         raise ParameterError("drops and video need the simulation backend (--backend sim)")
     if ep.port is None:
