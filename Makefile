@@ -26,6 +26,7 @@ bench: $(STAMP)
 	$(PY) bench/bus_loop.py
 	$(PY) bench/sysid_recovery.py
 	$(PY) bench/ik_latency.py
+	$(PY) bench/balance_monitor.py
 
 # The IK nets' size table and the paper's ablations over 3 seeds (about 35 min on 2 cores).
 ik-study: $(STAMP)

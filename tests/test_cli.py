@@ -305,7 +305,8 @@ def test_demo(tmp_path):
     run = runs[0]
     assert {p.name for p in run.iterdir()} == {"drop.mcap", "drop.mp4", "drop.png", "stand_dxl.mcap",
                                               "stand_dxl.png", "arm_figure8.mcap", "arm_figure8.mp4",
-                                              "arm_figure8.png"}  # no temporaries
+                                              "arm_figure8.png", "push.json", "push_margin.png",
+                                              "push.mp4"}  # no temporaries
     mp4 = (run / "drop.mp4").read_bytes()
     assert len(mp4) > 1000 and mp4[4:8] == b"ftyp"
     assert (run / "drop.png").read_bytes()[:8] == PNG_MAGIC
@@ -341,6 +342,15 @@ def test_demo(tmp_path):
     assert track["frames"] > 500 and track["unreachable"] == 0 and track["invalid"] == 0
     assert track["command_error"]["max_mm"] < 1e-6 and track["tracking_error"]["median_mm"] < 12
     assert (run / "arm_figure8.mp4").read_bytes()[4:8] == b"ftyp"
+
+    # part 4: the standing cat pushed: it falls without a reaction, after an early alarm; the selector's
+    # reaction keeps it up; the margin of stability is plotted with the alarm
+    push = json.loads((run / "push.json").read_text())
+    assert push["runs"]["none"]["fell"] and push["runs"]["none"]["lead_s"] >= 0.15
+    assert not push["runs"]["selector"]["fell"] and push["runs"]["selector"]["strategy"] != "none"
+    assert (run / "push_margin.png").read_bytes()[:8] == PNG_MAGIC
+    assert (run / "push.mp4").read_bytes()[4:8] == b"ftyp"
+    assert "balance monitor" in text
 
 
 def test_plot_file_mode_like_other_outputs(tmp_path):

@@ -227,6 +227,10 @@ def cmd_run(args) -> int:
             duration = run_time(traj)
     elif args.trajectory is not None or args.weights is not None:
         raise ParameterError("--trajectory and --weights belong to the arm-track controller")
+    if args.controller == "balance":
+        options = {"base": args.base or "stand", "reaction": args.reaction or "none", "selector": args.selector}
+    elif args.base is not None or args.reaction is not None or args.selector is not None:
+        raise ParameterError("--base, --reaction and --selector belong to the balance controller")
     duration = 3.0 if duration is None else duration
     res = _episode(args, robot=args.robot, controller=args.controller, duration=duration, log=args.log,
                    clock="wall" if backend == "dxl" else args.clock, rate_hz=args.rate, backend=backend,
@@ -260,7 +264,8 @@ def cmd_demo(args) -> int:
     """Servo-in-the-loop: the cat stands up through the virtual Dynamixel bus backed by MuJoCo (the
     whole hardware code path: DynamixelRobot, SDK, pseudo-terminal, byte-level servos, physics);
     then the cat dropped upside-down from 1 m in MuJoCo directly, with video; then the arm tracking a
-    figure eight with the learned IK pipeline (seed 001), with video."""
+    figure eight with the learned IK pipeline (seed 001), with video; then the standing cat pushed,
+    with the balance monitor's margin and alarm plotted (seed 004)."""
     root = Path(args.out)
     if root.exists() and not root.is_dir():
         raise ParameterError(f"{root} exists and is not a directory")
@@ -272,18 +277,18 @@ def cmd_demo(args) -> int:
         run_dir = root / f"{stamp}-{n}"
     console = _console()
     t0 = time.perf_counter()
-    console.print("[bold]felis demo 1/3[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
+    console.print("[bold]felis demo 1/4[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
                   "by MuJoCo (DynamixelRobot → dynamixel-sdk → pty → emulated servos → physics)")
     bus_res = _episode(args, robot="cat", controller="stand", duration=3.0, backend="dxl", port="virtual",
                        rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
                        meta={"demo": True})
     _print_result(bus_res, console)
-    console.print("[bold]felis demo 2/3[/]: the cat dropped upside-down from 1 m under the stand controller (MuJoCo)")
+    console.print("[bold]felis demo 2/4[/]: the cat dropped upside-down from 1 m under the stand controller (MuJoCo)")
     res = _episode(args, robot="cat", controller="stand", duration=2.5, drop=(1.0, 180.0, 0.0, 0.0),
                    log=run_dir / "drop.mcap", video=None if args.no_video else run_dir / "drop.mp4",
                    plot=run_dir / "drop.png", meta={"demo": True})
     _print_result(res, console)
-    console.print("[bold]felis demo 3/3[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
+    console.print("[bold]felis demo 3/4[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
                   "Posture Estimator → mean filter → exact refinement (MuJoCo)")
     from felis.controllers.arm_track import run_time, trajectory_from
 
@@ -293,6 +298,16 @@ def cmd_demo(args) -> int:
                        video=None if args.no_video else run_dir / "arm_figure8.mp4",
                        plot=run_dir / "arm_figure8.png", meta={"demo": True})
     _print_result(arm_res, console)
+    console.print("[bold]felis demo 4/4[/]: the standing cat pushed sideways: the XCoM balance monitor's margin "
+                  "and alarm, without a reaction and with the learned strategy selector (MuJoCo)")
+    from felis.cli.balance import push_demo
+
+    push = push_demo(run_dir, video=not args.no_video)
+    for name, r in push["runs"].items():
+        lead = f", alarm {r['lead_s'] * 1000:.0f} ms before it" if r["lead_s"] else ""
+        console.print(f"  {name}: {'fell (' + r['why'] + ')' if r['fell'] else 'stayed up'}{lead}; "
+                      f"reaction {r['strategy']}; peak tilt {r['max_tilt_deg']:.0f}°")
+    console.print("  " + ", ".join(f"{k}: {v}" for k, v in push["files"].items()))
     console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {run_dir}/")
     return 0 if res.report.ok and bus_res.report.ok and arm_res.report.ok else EXIT_ERROR
 
@@ -311,14 +326,14 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_doctor)
 
     demo = sub.add_parser("demo", help="the cat through the virtual Dynamixel bus (servo-in-the-loop), then a "
-                          "simulated drop, then the arm tracking a figure eight with the learned IK; logs, plots, "
-                          "video")
+                          "simulated drop, the arm tracking a figure eight with the learned IK, the cat pushed under the "
+                          "balance monitor; logs, plots, video")
     demo.add_argument("--out", default="runs", help="directory for runs/<timestamp>/ (default: runs)")
     demo.add_argument("--no-video", action="store_true", help="skip rendering")
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="run a controller on a robot")
-    run.add_argument("controller", help="controller name: hold, stand, sit, zero, arm-track")
+    run.add_argument("controller", help="controller name: hold, stand, sit, zero, arm-track, step-in-place, balance")
     run.add_argument("--robot", required=True, help="robot name (cat, arm) or a description .toml")
     run.add_argument("--backend", default="sim", choices=["sim", "dxl", "dynamixel"],
                      help="sim: MuJoCo; dxl: Dynamixel servos on --port (default sim)")
@@ -332,6 +347,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--trajectory", metavar="circle|figure8|FILE.csv",
                      help="arm-track: the tool-point trajectory (CSV t,x,y,z at 100 Hz; default figure8)")
     run.add_argument("--weights", type=Path, metavar="FILE", help="arm-track: IK weights (default: the shipped ones)")
+    run.add_argument("--base", choices=["stand", "step-in-place"],
+                     help="balance: the controller the monitor guards (default stand)")
+    run.add_argument("--reaction", choices=["none", "brace", "crouch", "step", "selector"],
+                     help="balance: what the cat does when the monitor warns (default none)")
+    run.add_argument("--selector", type=Path, metavar="FILE",
+                     help="balance: a selector file for --reaction selector (default: the shipped one)")
     run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
     run.add_argument("--rate", type=_float, help="control rate in Hz (default: the description's, 100)")
     run.add_argument("--clock", choices=["sim", "wall"], default="sim",
@@ -348,13 +369,14 @@ def build_parser() -> argparse.ArgumentParser:
     __import__("felis.cli.calib", fromlist=["register"]).register(sub, _Parser)  # setup-motors, calibrate, …
     __import__("felis.cli.sysid", fromlist=["register"]).register(sub, _Parser)  # felis sysid
 
-    train = sub.add_parser("train", help="train learned controllers: ik")
+    train = sub.add_parser("train", help="train learned controllers: ik, balance")
     trainsub = train.add_subparsers(dest="train_command", metavar="WHAT", parser_class=_Parser)
     train.set_defaults(func=lambda a: _missing(train))
-    evl = sub.add_parser("eval", help="evaluate learned controllers: ik")
+    evl = sub.add_parser("eval", help="evaluate learned controllers: ik, balance")
     evalsub = evl.add_subparsers(dest="eval_command", metavar="WHAT", parser_class=_Parser)
     evl.set_defaults(func=lambda a: _missing(evl))
     __import__("felis.cli.ik", fromlist=["register"]).register(trainsub, evalsub, _Parser, sub)  # train/eval ik
+    __import__("felis.cli.balance", fromlist=["register"]).register(trainsub, evalsub, _Parser)  # train/eval balance
 
     sim = sub.add_parser("sim", help="simulation: drop, render, view")
     simsub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", parser_class=_Parser)
