@@ -182,7 +182,8 @@ class BalanceMonitor:
         self.use_truth = use_truth
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, spec=None, state: State | None = None) -> None:
+        """Forget the alarm and the last tick (the loop calls this with its spec and first state)."""
         self.alarm = False
         self.last: Assessment | None = None
         self._below = self._above = 0
@@ -195,7 +196,7 @@ class BalanceMonitor:
     def assess(self, state: State) -> Assessment:
         try:
             a = self._assess(state)
-        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+        except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError):
             a = None
         if a is None:  # unknown: keep the alarm as it was, never claim balance
             a = Assessment(state.t, "unknown", self.alarm, math.nan, None, None, None, None, None, math.nan, None)

@@ -1,4 +1,6 @@
-"""Push tests: the push file format, random pushes, and the two scenario monitors that run them.
+"""Push tests: the push file format, random pushes, and the scenario monitors that run them (`Pusher`
+and `FallDetector` on a model the loop steps; `ThreadedPushTest` on the virtual bus's model, which
+another thread steps).
 
 A push file is a JSON list of objects::
 

@@ -206,11 +206,26 @@ def test_unknown_never_balanced(body):
     assert a.cls == "unknown" and not a.balanced and math.isnan(a.margin)
     a = mon.assess(State(t=0.01, q=np.zeros(12), dq=np.zeros(12)))  # no IMU: no orientation
     assert a.cls == "unknown"
+    zero = Imu(np.zeros(4), np.zeros(3), np.zeros(3))  # a failed IMU read as zeros
+    assert mon.assess(State(t=0.02, q=np.zeros(12), dq=np.zeros(12), imu=zero)).cls == "unknown"
     mon = BalanceMonitor(body)
     mon.assess(_state(0, [0, 0.0, 0.1], [0, 0.8, 0], SQUARE, body))
     assert mon.alarm
     a = mon.assess(_state(0.01, [np.nan, 0, 0.1], [0, 0, 0], SQUARE, body))
     assert a.cls == "unknown" and a.alarm  # a failed read neither raises nor clears the alarm
+
+
+def test_monitor_runs_as_a_loop_monitor(spec, body):
+    """The monitor plugs into run_loop as a monitor (reset(spec, state), then (state, command) per tick)."""
+    from felis.loop import run_loop
+    from felis.sim import MujocoRobot
+    from felis.sim.scenarios import set_pose
+
+    mon = BalanceMonitor(body)
+    with MujocoRobot(spec) as robot:
+        set_pose(robot, spec.pose("stand"))
+        run_loop(robot, make_controller("stand"), duration=0.3, monitors=[mon])
+    assert mon.last.cls == "standing" and not mon.alarm and mon.last.margin > 0.03
 
 
 def test_monitor_arguments(body):
