@@ -326,8 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_doctor)
 
     demo = sub.add_parser("demo", help="the cat through the virtual Dynamixel bus (servo-in-the-loop), then a "
-                          "simulated drop, the arm tracking a figure eight with the learned IK, the cat pushed under the "
-                          "balance monitor; logs, plots, video")
+                          "simulated drop, the arm tracking a figure eight with the learned IK, the cat pushed "
+                          "under the balance monitor; logs, plots, video")
     demo.add_argument("--out", default="runs", help="directory for runs/<timestamp>/ (default: runs)")
     demo.add_argument("--no-video", action="store_true", help="skip rendering")
     demo.set_defaults(func=cmd_demo)
