@@ -27,6 +27,7 @@ bench: $(STAMP)
 	$(PY) bench/sysid_recovery.py
 	$(PY) bench/ik_latency.py
 	$(PY) bench/balance_monitor.py
+	$(PY) bench/dtw_speed.py
 
 # The IK nets' size table and the paper's ablations over 3 seeds (about 35 min on 2 cores).
 ik-study: $(STAMP)

@@ -372,11 +372,12 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train", help="train learned controllers: ik, balance")
     trainsub = train.add_subparsers(dest="train_command", metavar="WHAT", parser_class=_Parser)
     train.set_defaults(func=lambda a: _missing(train))
-    evl = sub.add_parser("eval", help="evaluate learned controllers: ik, balance")
+    evl = sub.add_parser("eval", help="evaluate learned controllers: ik, balance, landing")
     evalsub = evl.add_subparsers(dest="eval_command", metavar="WHAT", parser_class=_Parser)
     evl.set_defaults(func=lambda a: _missing(evl))
     __import__("felis.cli.ik", fromlist=["register"]).register(trainsub, evalsub, _Parser, sub)  # train/eval ik
     __import__("felis.cli.balance", fromlist=["register"]).register(trainsub, evalsub, _Parser)  # train/eval balance
+    __import__("felis.cli.landing", fromlist=["register"]).register(trainsub, evalsub, _Parser)  # eval landing
 
     sim = sub.add_parser("sim", help="simulation: drop, render, view")
     simsub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", parser_class=_Parser)

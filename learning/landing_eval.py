@@ -1,0 +1,196 @@
+"""Drop experiments on the simulated cat: one drop per episode, judged by the `landed` rule (issue 5).
+
+An episode: the cat is reset to the model's pose (every joint at 0), turned and lifted by
+`felis.sim.scenarios.drop`, released at rest, and a policy runs in `felis.loop.run_loop` at 100 Hz for
+
+    T = √(2h/g) + 1.0 s
+
+(the fall, the 0.5 s after touchdown that the rule judges, and a margin). A `felis.sim.drops.LandingJudge`
+in the physics sub-step hook records touchdown, any non-foot contact in the window, the tilt and waist
+height at its end, and the peak ground force; the tilt at the end of the run is kept too.
+
+Policies, by name: ``passive`` holds the pose the cat has at release (`make_controller("hold")`),
+``stand`` moves to the stand pose (`make_controller("stand")`), and a file path will name a trained
+landing policy once ``felis train landing`` exists.
+
+`run_drops` runs a list of drops in a process pool (one compiled model per worker, reset between
+drops); results are in drop order and identical whatever the worker count, since each episode is
+deterministic and independent. `summarise` gives the success rate (landed / drops) and one entry per drop.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from felis.errors import ParameterError, SimulationError
+from felis.hal import Controller
+from felis.sim.drops import Drop, LandingJudge, standing_waist_height, tilt_deg
+from felis.spec import load_spec
+
+RATE_HZ = 100.0
+MARGIN_S = 1.0  # after the fall: the 0.5 s window and 0.5 s more
+POLICIES = {"passive": "hold", "stand": "stand"}  # policy name → controller name
+
+
+def check_policy(policy: str) -> str:
+    """``policy`` if it can be run; else a one-line ParameterError (a missing or, for now, any file)."""
+    if policy in POLICIES:
+        return policy
+    path = Path(policy)
+    if not path.exists():
+        raise ParameterError(f"--policy {policy}: no such policy file (policies: {', '.join(POLICIES)} or a "
+                             "file from `felis train landing`)")
+    raise ParameterError(f"--policy {policy}: policy files need `felis train landing` (not built yet); "
+                         f"use {' or '.join(POLICIES)}")
+
+
+def make_policy(policy: str) -> Controller:
+    """A fresh controller for a policy name (`check_policy` first)."""
+    from felis.controllers import make_controller
+
+    check_policy(policy)
+    return make_controller(POLICIES[policy])
+
+
+@dataclass
+class LandingOutcome:
+    drop: Drop
+    policy: str
+    landed: bool
+    foot_only: bool  # only feet on the floor from touchdown to touchdown + 0.5 s
+    touchdown_s: float | None  # time from release to the first floor contact
+    first_body: str | None  # a body that made that contact
+    touch_body: str | None  # the first non-foot body on the floor within the window
+    touch_s: float | None  # … how long after touchdown
+    tilt_deg: float | None  # at touchdown + 0.5 s
+    waist_m: float | None  # at touchdown + 0.5 s
+    peak_impact: float  # peak ground reaction force, body weights
+    final_tilt_deg: float  # at the end of the run
+    why: str  # why it did not land ("" when it did)
+    reasons: tuple[str, ...]  # the same as kinds fit for counting
+    standing_waist_m: float
+
+    def as_dict(self) -> dict:
+        r = lambda v, n=4: None if v is None else round(float(v), n)  # noqa: E731
+        return {**self.drop.as_dict(), "landed": self.landed, "why": self.why or None, "foot_only": self.foot_only,
+                "touchdown_s": r(self.touchdown_s), "touch_body": self.touch_body, "touch_s": r(self.touch_s),
+                "tilt_deg": r(self.tilt_deg, 2), "waist_m": r(self.waist_m), "peak_impact": r(self.peak_impact, 2),
+                "final_tilt_deg": r(self.final_tilt_deg, 2)}
+
+
+def episode_duration(d: Drop, g: float = 9.81) -> float:
+    """√(2h/g) + 1.0 s (module doc)."""
+    return (2.0 * d.height_m / g) ** 0.5 + MARGIN_S
+
+
+class LandingSim:
+    """A reusable simulated cat for drop episodes (one compiled model, reset between drops); measures the
+    standing waist height once at construction."""
+
+    def __init__(self, robot: str = "cat"):
+        from felis.sim import MujocoRobot
+
+        self.spec = load_spec(robot)
+        self.feet = tuple(self.spec.sensors.contacts)
+        if not self.feet:
+            raise ParameterError(f"{self.spec.name} has no foot contacts (sensors.contacts): it cannot be judged")
+        self.robot = MujocoRobot(self.spec)
+        self.robot.connect()
+        self.standing_waist_m = standing_waist_height(self.robot)
+
+    def run(self, d: Drop, policy: str = "passive", monitors=()) -> LandingOutcome:
+        """One drop episode (module doc); ``monitors``: extra loop monitors (e.g. a video recorder)."""
+        from felis.loop import run_loop
+        from felis.sim.scenarios import drop
+
+        robot = self.robot
+        controller = make_policy(policy)
+        robot.reset()
+        info = drop(robot, d.height_m, d.roll_deg, d.pitch_deg, d.yaw_deg)
+        judge = LandingJudge(robot, self.feet, self.standing_waist_m).attach()
+        diverged = False
+        try:
+            run_loop(robot, controller, duration=info.fall_time + MARGIN_S, rate_hz=RATE_HZ, monitors=monitors,
+                     keep_armed=True)
+        except SimulationError:
+            diverged = True
+        finally:
+            judge.detach()
+        if diverged:  # MuJoCo reset the data: nothing after this point is the drop's
+            return LandingOutcome(d, policy, False, False, judge.touchdown_t, judge.first_body, judge.touch_body,
+                                  None, None, None, judge.peak_impact, float("nan"), "physics diverged",
+                                  ("physics diverged",), self.standing_waist_m)
+        reasons = judge.reasons()
+        return LandingOutcome(
+            d, policy, judge.landed, judge.foot_only, judge.touchdown_t, judge.first_body, judge.touch_body,
+            None if judge.touch_t is None else judge.touch_t - judge.touchdown_t, judge.tilt_deg, judge.waist_m,
+            judge.peak_impact, tilt_deg(robot), "; ".join(detail for _, detail in reasons),
+            tuple(kind for kind, _ in reasons), self.standing_waist_m)
+
+    def close(self) -> None:
+        self.robot.close()
+
+
+# ----------------------------------------------------------------------------------- parallel runs
+_SIM: LandingSim | None = None
+
+
+def _init(robot: str) -> None:
+    """Per worker process: its own model."""
+    global _SIM
+    _SIM = LandingSim(robot)
+
+
+def _one(args) -> LandingOutcome:
+    d, policy = args
+    return _SIM.run(d, policy)
+
+
+def run_drops(drops: Sequence[Drop], policy: str = "passive", *, workers: int | None = None, robot: str = "cat",
+              progress: Callable[[int], None] | None = None) -> list[LandingOutcome]:
+    """Run every drop with ``policy`` in ``workers`` processes (default: every core); results in drop order,
+    identical whatever the number of workers."""
+    check_policy(policy)  # a bad policy fails here, once, as one line
+    if workers is not None and workers < 1:
+        raise ParameterError(f"workers must be ≥ 1, got {workers}")
+    if not drops:
+        return []
+    workers = max(1, min(workers or os.cpu_count() or 1, len(drops)))
+    jobs = [(d, policy) for d in drops]
+    out: list[LandingOutcome] = []
+    if workers == 1:
+        sim = LandingSim(robot)
+        try:
+            for d in drops:
+                out.append(sim.run(d, policy))
+                if progress:
+                    progress(1)
+        finally:
+            sim.close()
+        return out
+    with ProcessPoolExecutor(workers, initializer=_init, initargs=(robot,)) as pool:
+        for o in pool.map(_one, jobs, chunksize=max(1, min(4, len(jobs) // (4 * workers)))):
+            out.append(o)
+            if progress:
+                progress(1)
+    return out
+
+
+def summarise(outcomes: Sequence[LandingOutcome]) -> dict:
+    """success_rate (landed / drops), counts, the reasons for the failures, and one entry per drop."""
+    good = [o for o in outcomes if o.landed]
+    reasons: dict[str, int] = {}
+    for o in outcomes:
+        for k in o.reasons:
+            reasons[k] = reasons.get(k, 0) + 1
+    return {
+        "success_rate": round(len(good) / len(outcomes), 4) if outcomes else None,
+        "landed": len(good), "total": len(outcomes),
+        "reasons": dict(sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))),
+        "standing_waist_m": round(outcomes[0].standing_waist_m, 4) if outcomes else None,
+        "drops": [o.as_dict() for o in outcomes],
+    }
