@@ -102,20 +102,24 @@ class LandingSim:
         self.robot.connect()
         self.standing_waist_m = standing_waist_height(self.robot)
 
-    def run(self, d: Drop, policy: str = "passive", monitors=()) -> LandingOutcome:
-        """One drop episode (module doc); ``monitors``: extra loop monitors (e.g. a video recorder)."""
+    def run(self, d: Drop, policy: str | Controller = "passive", monitors=(), duration: float | None = None
+            ) -> LandingOutcome:
+        """One drop episode (module doc). ``policy``: a policy name, or a controller to run as it is (e.g. a
+        `felis.controllers.landing.LandingController`); ``monitors``: extra loop monitors (a video recorder,
+        a motion recorder); ``duration``: the run's length (default: the fall time + `MARGIN_S`)."""
         from felis.loop import run_loop
         from felis.sim.scenarios import drop
 
         robot = self.robot
-        controller = make_policy(policy)
+        controller = make_policy(policy) if isinstance(policy, str) else policy
+        policy = policy if isinstance(policy, str) else getattr(policy, "name", type(policy).__name__)
         robot.reset()
         info = drop(robot, d.height_m, d.roll_deg, d.pitch_deg, d.yaw_deg)
         judge = LandingJudge(robot, self.feet, self.standing_waist_m).attach()
         diverged = False
         try:
-            run_loop(robot, controller, duration=info.fall_time + MARGIN_S, rate_hz=RATE_HZ, monitors=monitors,
-                     keep_armed=True)
+            run_loop(robot, controller, duration=info.fall_time + MARGIN_S if duration is None else duration,
+                     rate_hz=RATE_HZ, monitors=monitors, keep_armed=True)
         except SimulationError:
             diverged = True
         finally:
