@@ -46,7 +46,8 @@ class LandingController:
         elif callable(policy):
             self._policy = policy
         else:
-            raise ParameterError(f"landing: a policy needs velocities(it) or to be callable, got {type(policy).__name__}")
+            raise ParameterError("landing: a policy needs velocities(it) or to be callable, got "
+                                 f"{type(policy).__name__}")
         self.policy = policy
         self.drop_height = drop_height
         self.held = 0  # ticks whose velocities were not finite
