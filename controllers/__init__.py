@@ -53,6 +53,16 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
     return ReactiveController(make_controller(base), BalanceMonitor(body), react)
 
 
+def _landing(policy=None, drop_height: float | None = None) -> Controller:
+    """The falling cat's evolved landing nets (seed 000): the shipped policy unless a file is given;
+    ``drop_height`` (m) where the robot reports no height (hardware: free-fall prediction)."""
+    from felis.controllers.landing import LandingController
+    from felis.learning.landing_nets import DEFAULT_POLICY, load_policy
+
+    behaviour, _ = load_policy(DEFAULT_POLICY if policy is None else policy)  # PolicyError: one line
+    return LandingController(behaviour, drop_height=drop_height)
+
+
 CONTROLLERS: dict[str, Callable[..., Controller]] = {
     "hold": lambda: PoseController("hold"),
     "stand": lambda: PoseController("stand", duration=0.5),
@@ -61,6 +71,7 @@ CONTROLLERS: dict[str, Callable[..., Controller]] = {
     "arm-track": _arm_track,
     "step-in-place": _step_in_place,
     "balance": _balance,
+    "landing": _landing,
 }
 
 

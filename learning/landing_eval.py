@@ -33,27 +33,58 @@ from felis.spec import load_spec
 
 RATE_HZ = 100.0
 MARGIN_S = 1.0  # after the fall: the 0.5 s window and 0.5 s more
-POLICIES = {"passive": "hold", "stand": "stand"}  # policy name → controller name
+POLICIES = {"passive": "hold", "stand": "stand"}  # baseline name → controller name
+NAMED = (*POLICIES, "rules", "shipped")
+
+
+def shipped_policy() -> Path:
+    from felis.learning.landing_nets import DEFAULT_POLICY
+
+    return DEFAULT_POLICY
+
+
+def default_policy() -> str:
+    """The shipped trained policy when there is one, else ``passive``."""
+    return "shipped" if shipped_policy().is_file() else "passive"
 
 
 def check_policy(policy: str) -> str:
-    """``policy`` if it can be run; else a one-line ParameterError (a missing or, for now, any file)."""
-    if policy in POLICIES:
+    """``policy`` if it can be run: a baseline (passive, stand), ``rules`` (the hand-written spine rule of
+    the nearest training orientation), ``shipped`` or a policy file; else a one-line ParameterError."""
+    if policy in POLICIES or policy == "rules":
         return policy
-    path = Path(policy)
+    from felis.learning.landing_nets import PolicyError, load_policy
+
+    path = shipped_policy() if policy == "shipped" else Path(policy)
     if not path.exists():
-        raise ParameterError(f"--policy {policy}: no such policy file (policies: {', '.join(POLICIES)} or a "
-                             "file from `felis train landing`)")
-    raise ParameterError(f"--policy {policy}: policy files need `felis train landing` (not built yet); "
-                         f"use {' or '.join(POLICIES)}")
+        what = "no shipped landing policy" if policy == "shipped" else "no such policy file"
+        raise ParameterError(f"--policy {policy}: {what} (policies: {', '.join(NAMED)} or a file from "
+                             "`felis train landing`)")
+    try:
+        load_policy(path)
+    except PolicyError as e:
+        raise ParameterError(str(e)) from None
+    return policy
 
 
-def make_policy(policy: str) -> Controller:
-    """A fresh controller for a policy name (`check_policy` first)."""
+def make_policy(policy: str, drop: Drop | None = None) -> Controller:
+    """A fresh controller for a policy (`check_policy` first); ``rules`` needs the drop's orientation."""
     from felis.controllers import make_controller
 
     check_policy(policy)
-    return make_controller(POLICIES[policy])
+    if policy in POLICIES:
+        return make_controller(POLICIES[policy])
+    from felis.controllers.landing import LandingController
+
+    if policy == "rules":
+        from felis.learning.landing_samples import nearest_rule
+
+        rule = nearest_rule((drop.roll_deg, drop.pitch_deg, drop.yaw_deg) if drop else (180.0, 0.0, 0.0))
+        return LandingController(rule, drop_height=drop.height_m if drop else None)
+    from felis.learning.landing_nets import load_policy
+
+    behaviour, _ = load_policy(shipped_policy() if policy == "shipped" else policy)
+    return LandingController(behaviour, drop_height=drop.height_m if drop else None)
 
 
 @dataclass
@@ -111,7 +142,7 @@ class LandingSim:
         from felis.sim.scenarios import drop
 
         robot = self.robot
-        controller = make_policy(policy) if isinstance(policy, str) else policy
+        controller = make_policy(policy, d) if isinstance(policy, str) else policy
         policy = policy if isinstance(policy, str) else getattr(policy, "name", type(policy).__name__)
         robot.reset()
         info = drop(robot, d.height_m, d.roll_deg, d.pitch_deg, d.yaw_deg)

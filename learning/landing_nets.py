@@ -66,6 +66,7 @@ MAX_HIDDEN = 8  # default bound on hidden neurons for random units (the paper gi
 LANDING_HEIGHT_M = 0.5  # spine held straight below this waist height: eq. 9's 500 mm (our reading)
 LANDING_HEIGHT_MM = 500.0  # eq. 9: T is the first step with Sh < 500 mm
 UPRIGHT_COS = math.cos(math.radians(30.0))  # up-axis within 30° of vertical, as felis.sim.drops
+DEFAULT_POLICY = Path(__file__).parent / "weights" / "landing.npz"  # the shipped policy (`felis train landing`)
 FORMAT = "felis-landing-policy"
 VERSION = 1
 META_KEY = "__meta__"

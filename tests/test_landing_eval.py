@@ -155,8 +155,10 @@ def test_policies(tmp_path):
         check_policy(str(tmp_path / "nope.npz"))
     f = tmp_path / "policy.npz"
     f.write_bytes(b"x")
-    with pytest.raises(ParameterError, match=r"policy files need `felis train landing` \(not built yet\)"):
+    with pytest.raises(ParameterError, match="not a landing policy file") as e:
         check_policy(str(f))
+    assert "\n" not in str(e.value)
+    assert check_policy("rules") == "rules"
 
 
 # ----------------------------------------------------------------------------------- real MuJoCo drops
@@ -221,7 +223,7 @@ def _args(argv: list[str]) -> argparse.Namespace:
     train = sub.add_parser("train").add_subparsers(dest="train_command")
     evl = sub.add_parser("eval").add_subparsers(dest="eval_command")
     register(train, evl, argparse.ArgumentParser)
-    assert "landing" not in train.choices  # no `train landing` yet
+    assert "landing" in train.choices
     return p.parse_args(["eval", "landing", *argv])
 
 
@@ -247,11 +249,13 @@ def test_cli_json_three_drops_same_with_1_and_2_workers(tmp_path, capsys):
 
 
 def test_cli_default_policy_and_text(capsys):
+    from felis.learning.landing_eval import default_policy
+
     args = _args(["--drops", "random:2", "--workers", "1"])
-    assert args.policy == "passive" and args.height is None
+    assert args.policy is None and args.height is None  # the shipped policy when there is one, else passive
     assert cmd_eval_landing(args) == 0
     text = capsys.readouterr().out
-    assert text.startswith("2 drops from 1 m (random:2, seed 0), policy passive:")
+    assert text.startswith(f"2 drops from 1 m (random:2, seed 0), policy {default_policy()}:")
 
 
 @pytest.mark.parametrize("argv, what", [

@@ -15,20 +15,47 @@ from pathlib import Path
 
 from felis.errors import ParameterError
 
-DEFAULT_POLICY = "passive"  # becomes the shipped trained policy once `felis train landing` exists
+DEFAULT_TRAIN_OUT = Path("runs/train-landing/landing.npz")
 
 
 def register(train_sub, eval_sub, parser_class) -> None:
-    """Add ``eval landing`` (no ``train landing`` yet)."""
+    """Add ``train landing`` and ``eval landing``."""
+    from felis.learning.landing_train import TrainConfig
+
+    d = TrainConfig()
+    t = train_sub.add_parser("landing", help="evolve the landing nets (seed 000): the simple stage per training "
+                             "orientation, then the complex stage; checkpoints resume")
+    t.add_argument("--out", type=Path, default=DEFAULT_TRAIN_OUT,
+                   help=f"policy file (.npz; default {DEFAULT_TRAIN_OUT})")
+    t.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the policy)")
+    t.add_argument("--resume", action="store_true", help="continue from the checkpoint in --workdir")
+    t.add_argument("--seed", type=int, default=d.seed, help=f"seed (default {d.seed})")
+    t.add_argument("--population", type=int, default=d.population, help=f"individuals per population "
+                   f"(default {d.population})")
+    t.add_argument("--generations-simple", type=int, default=d.generations_simple,
+                   help=f"generations of the simple stage (default {d.generations_simple})")
+    t.add_argument("--generations-complex", type=int, default=d.generations_complex,
+                   help=f"generations of the complex stage (default {d.generations_complex})")
+    t.add_argument("--orientations", type=int, nargs="+", metavar="I",
+                   help="training orientations (indices into the motion samples; default all 7)")
+    t.add_argument("--f-only", action="store_true", help="rank by the fitness f alone, without the similarity to "
+                   "the motion samples (the paper's experiment 1)")
+    t.add_argument("--samples", type=Path, metavar="FILE", help="motion samples (default: the shipped ones)")
+    t.add_argument("--workers", type=int, help="local processes (default: every core)")
+    t.add_argument("--ray-address", metavar="ADDRESS|auto|local",
+                   help="run rollouts on a Ray cluster (needs felis[cluster]); local starts one here")
+    t.add_argument("--json", action="store_true", help="print the results as JSON")
+    t.set_defaults(func=cmd_train_landing)
+
     e = eval_sub.add_parser("landing", help="drop the cat from many orientations and heights: the landing "
                             "success rate of a policy")
     e.add_argument("--drops", required=True, metavar="FILE|random:N",
                    help="a JSON list of drops {roll_deg, pitch_deg, yaw_deg, height_m}, or random:N (roll, pitch "
                    "and yaw uniform over the full circle)")
-    e.add_argument("--policy", default=DEFAULT_POLICY, metavar="passive|stand|FILE",
-                   help="what the cat does while it falls and lands: passive (hold the pose at release), stand "
-                   "(go to the stand pose) or a trained policy file; default passive for now: the shipped trained "
-                   "policy becomes the default once `felis train landing` exists")
+    e.add_argument("--policy", metavar="shipped|passive|stand|rules|FILE",
+                   help="what the cat does while it falls and lands: shipped (the trained policy, the default), "
+                   "passive (hold the pose at release), stand (go to the stand pose), rules (the hand-written "
+                   "spine rule of the nearest training orientation) or a policy file from `felis train landing`")
     e.add_argument("--seed", type=int, default=0, help="seed of random:N (default 0)")
     e.add_argument("--height", type=float, metavar="M", help="drop height for random:N (m, default 1.0)")
     e.add_argument("--workers", type=int, help="processes (default: every core)")
@@ -37,12 +64,59 @@ def register(train_sub, eval_sub, parser_class) -> None:
     e.set_defaults(func=cmd_eval_landing)
 
 
+def cmd_train_landing(args) -> int:
+    from felis.files import check_target
+    from felis.learning.landing_train import TrainConfig, train_landing
+
+    cfg = TrainConfig(seed=args.seed, population=args.population, generations_simple=args.generations_simple,
+                      generations_complex=args.generations_complex, orientations=tuple(args.orientations or ()),
+                      use_similarity=not args.f_only, samples=str(args.samples or ""), workers=args.workers,
+                      ray_address=args.ray_address)
+    out = Path(args.out)
+    if out.suffix.lower() != ".npz":
+        raise ParameterError(f"{out}: a landing policy file must end in .npz")
+    check_target(out, "landing policy", ParameterError)
+    workdir = args.workdir or out.with_suffix(".ckpt")
+    if args.resume and not (Path(workdir) / "checkpoint.npz").is_file():
+        raise ParameterError(f"--resume: no checkpoint in {workdir}")
+    quiet = args.json or not sys.stderr.isatty()
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                   TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(), disable=quiet)
+    tasks: dict[str, int] = {}
+
+    def progress(stage, generation, generations, info):
+        def fmt(v):
+            if isinstance(v, list):
+                return f"{max(v):.3g}" if v else "-"
+            return f"{v:.3g}" if isinstance(v, float) else str(v)
+
+        keys = ("best_f", "score", "mean_f", "successes", "landed", "orientations")
+        text = ", ".join(f"{k} {fmt(info[k])}" for k in keys if k in info)
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(f"{stage} stage", total=generations, info="")
+        bar.update(tasks[stage], completed=generation, info=text)
+        if quiet and not args.json:
+            print(f"{stage} stage: generation {generation}/{generations}: {text}", flush=True)
+
+    with bar:
+        res = train_landing(cfg, out, workdir, resume=args.resume, progress=progress)
+    if args.json:
+        print(json.dumps(res, indent=1))
+        return 0
+    stem = out.with_suffix("")
+    print(f"policy: {out}; results: {stem}.results.json; curves: {stem}.curves.png")
+    return 0
+
+
 def cmd_eval_landing(args) -> int:
     from felis.cli.balance import _progress
-    from felis.learning.landing_eval import check_policy, run_drops, summarise
+    from felis.learning.landing_eval import check_policy, default_policy, run_drops, summarise
     from felis.sim.drops import drops_from
 
     drops = drops_from(args.drops, args.seed, args.height)
+    args.policy = args.policy or default_policy()
     check_policy(args.policy)
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")

@@ -333,7 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="run a controller on a robot")
-    run.add_argument("controller", help="controller name: hold, stand, sit, zero, arm-track, step-in-place, balance")
+    run.add_argument("controller", help="controller name: hold, stand, sit, zero, arm-track, step-in-place, balance, "
+                     "landing")
     run.add_argument("--robot", required=True, help="robot name (cat, arm) or a description .toml")
     run.add_argument("--backend", default="sim", choices=["sim", "dxl", "dynamixel"],
                      help="sim: MuJoCo; dxl: Dynamixel servos on --port (default sim)")

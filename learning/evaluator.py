@@ -1,0 +1,255 @@
+"""Evaluators: run a function over a list of jobs, locally in a process pool or on a Ray cluster.
+
+Training by evolution (`felis.learning.landing_train`) spends its time in rollouts, each a deterministic
+function of its job (an individual and an orientation). An `Evaluator` maps such a function over a list of
+jobs and returns the results **in job order**; which evaluator ran them never changes the numbers, since
+all randomness is drawn in the parent process and each worker only runs deterministic rollouts.
+
+- `ProcessPoolEvaluator`: a local process pool (default: every core), created on the first `map` and kept
+  until `close`, so a per-worker object built by ``initializer(*initargs)`` (a compiled simulation, stored
+  in a module-level global of the job function's module, as `felis.learning.landing_eval` does) serves
+  every generation. ``workers=1`` runs the jobs inline in this process (``initializer`` runs here once).
+- `RayEvaluator`: the same on Ray (``pip install felis[cluster]``): ``address="local"`` starts a local Ray
+  with ``num_cpus``; any other address joins that cluster (``"auto"``, ``"ray://host:10001"``). Jobs go out
+  in batches, one remote task per batch; each Ray worker process runs ``initializer(*initargs)`` once per
+  evaluator (tracked by a token) before its first batch, and keeps the result for later batches.
+
+Every evaluator runs its jobs with the numeric libraries' thread pools (BLAS, OpenMP) limited to one thread
+(`threadpoolctl`, where installed): the processes are the parallelism, and oversubscribed BLAS threads
+made a 2-process pool a third slower; it also gives every evaluator the same single-threaded arithmetic.
+
+Jobs travel in batches of ``chunksize`` (default: about four batches per worker per `map`), so the
+per-task overhead (pickling, scheduling) is paid per batch rather than per rollout.
+
+`make_evaluator` picks one from the command line's ``--ray ADDRESS`` / ``--workers N``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import uuid
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, Protocol, runtime_checkable
+
+from felis.errors import FelisError, ParameterError
+
+BATCHES_PER_WORKER = 4  # default chunking: about this many batches per worker in one map call
+
+
+class EvaluatorError(FelisError):
+    """A worker process died mid-map (out of memory, a crash in native code); its results are lost."""
+
+
+@runtime_checkable
+class Evaluator(Protocol):
+    """Maps a picklable, module-level function over jobs; results in job order."""
+
+    def map(self, fn: Callable[[Any], Any], jobs: list) -> list: ...
+
+    def close(self) -> None: ...
+
+    def describe(self) -> str: ...
+
+
+def single_threaded():
+    """Limit BLAS/OpenMP thread pools to one thread in this process (module doc); returns the
+    `threadpoolctl` limiter (a context manager that restores the old limits) or None without it."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # scikit-learn's dependency; without it the libraries keep their defaults
+        return None
+    return threadpool_limits(limits=1)
+
+
+def _pool_init(initializer: Callable[..., None] | None, initargs: tuple) -> None:
+    """Initializer of a pool worker process: single-threaded libraries, then the caller's initializer."""
+    single_threaded()
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def _chunk(n_jobs: int, workers: int, chunksize: int | None) -> int:
+    if chunksize is not None:
+        return chunksize
+    return max(1, math.ceil(n_jobs / (BATCHES_PER_WORKER * max(1, workers))))
+
+
+def _check_chunksize(chunksize: int | None) -> None:
+    if chunksize is not None and (isinstance(chunksize, bool) or not isinstance(chunksize, int) or chunksize < 1):
+        raise ParameterError(f"chunksize must be a positive integer, got {chunksize!r}")
+
+
+class ProcessPoolEvaluator:
+    """A local process pool (module doc).
+
+    Args:
+        workers: processes; None = every core (``os.cpu_count()``); 1 = inline, no subprocess.
+        initializer, initargs: run once per worker process (inline: once, here) before its first job.
+        chunksize: jobs per batch sent to a worker; None = about `BATCHES_PER_WORKER` batches per worker.
+    """
+
+    def __init__(self, workers: int | None = None, initializer: Callable[..., None] | None = None,
+                 initargs: Sequence[Any] = (), chunksize: int | None = None):
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+            raise ParameterError(f"workers must be a positive integer, got {workers!r}")
+        _check_chunksize(chunksize)
+        self.workers = workers or os.cpu_count() or 1
+        self.initializer, self.initargs, self.chunksize = initializer, tuple(initargs), chunksize
+        self._pool: ProcessPoolExecutor | None = None
+        self._initialised = False  # inline mode
+
+    def map(self, fn: Callable[[Any], Any], jobs: list) -> list:
+        jobs = list(jobs)
+        if not jobs:
+            return []
+        if self.workers == 1:
+            limiter = single_threaded()  # restored after the map: this is the caller's process
+            try:
+                if not self._initialised and self.initializer is not None:
+                    self.initializer(*self.initargs)
+                self._initialised = True
+                return [fn(j) for j in jobs]
+            finally:
+                if limiter is not None:
+                    limiter.restore_original_limits()
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(self.workers, initializer=_pool_init,
+                                             initargs=(self.initializer, self.initargs))
+        try:
+            return list(self._pool.map(fn, jobs, chunksize=_chunk(len(jobs), self.workers, self.chunksize)))
+        except BrokenProcessPool:
+            self._pool = None
+            raise EvaluatorError(f"a worker process of the {self.workers}-process pool died (out of memory or a "
+                                 "crash); rerun with fewer workers, or resume from the last checkpoint") from None
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> ProcessPoolEvaluator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def describe(self) -> str:
+        return "inline (1 process)" if self.workers == 1 else f"process pool ({self.workers} workers)"
+
+
+# ------------------------------------------------------------------------------------------------ Ray
+_RAY_TOKEN: str | None = None  # per Ray worker process: the evaluator whose initializer ran here last
+
+
+def _ray_batch(token: str, initializer: Callable[..., None] | None, initargs: tuple, fn: Callable[[Any], Any],
+               batch: list) -> list:
+    """Body of the remote task: (re)initialise this worker for the evaluator ``token``, then run a batch."""
+    global _RAY_TOKEN
+    if _RAY_TOKEN != token:
+        single_threaded()
+        if initializer is not None:
+            initializer(*initargs)
+        _RAY_TOKEN = token
+    return [fn(j) for j in batch]
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise ParameterError("Ray is not installed: install felis[cluster] (pip install 'felis[cluster]') to "
+                             "evaluate on a Ray cluster, or leave out the Ray address to use local processes"
+                             ) from None
+    return ray
+
+
+class RayEvaluator:
+    """Jobs on Ray (module doc).
+
+    Args:
+        address: ``"local"`` starts a local Ray with ``num_cpus`` CPUs (None: every core); anything else is
+            passed to ``ray.init(address=...)`` (e.g. ``"auto"``, ``"ray://head:10001"``). If Ray is already
+            initialised in this process, that session is used and left running on `close`.
+        num_cpus: local Ray only.
+        initializer, initargs: run once per Ray worker process before its first batch for this evaluator.
+        chunksize: jobs per remote task; None = about `BATCHES_PER_WORKER` tasks per cluster CPU.
+    """
+
+    def __init__(self, address: str, num_cpus: int | None = None, initializer: Callable[..., None] | None = None,
+                 initargs: Sequence[Any] = (), chunksize: int | None = None):
+        if not isinstance(address, str) or not address.strip():
+            raise ParameterError(f"Ray address must be 'local' or a cluster address, got {address!r}")
+        if num_cpus is not None and (isinstance(num_cpus, bool) or not isinstance(num_cpus, int) or num_cpus < 1):
+            raise ParameterError(f"num_cpus must be a positive integer, got {num_cpus!r}")
+        if num_cpus is not None and address != "local":
+            raise ParameterError("num_cpus applies to a local Ray only (address 'local'); a cluster has its own")
+        _check_chunksize(chunksize)
+        ray = _import_ray()
+        self._ray, self.address, self.chunksize = ray, address, chunksize
+        self._owns = not ray.is_initialized()
+        if self._owns:
+            try:
+                if address == "local":
+                    ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+                else:
+                    ray.init(address=address, log_to_driver=False)
+            except (ConnectionError, RuntimeError, ValueError) as e:
+                raise ParameterError(f"cannot connect to Ray at {address!r}: {' '.join(str(e).split())[:200]}"
+                                     ) from None
+        self._cpus = 1
+        self._token = uuid.uuid4().hex  # identifies this evaluator's initializer on the workers
+        self._initargs_ref = ray.put((initializer, tuple(initargs)))
+        self._remote = ray.remote(_ray_remote_entry)
+
+    @property
+    def workers(self) -> int:
+        """CPUs in the cluster now (the last known count once closed)."""
+        if self._ray.is_initialized():
+            self._cpus = max(1, int(self._ray.cluster_resources().get("CPU", 1)))
+        return self._cpus
+
+    def map(self, fn: Callable[[Any], Any], jobs: list) -> list:
+        jobs = list(jobs)
+        if not jobs:
+            return []
+        size = _chunk(len(jobs), self.workers, self.chunksize)
+        refs = [self._remote.remote(self._token, self._initargs_ref, fn, jobs[i:i + size])
+                for i in range(0, len(jobs), size)]
+        out: list = []
+        for batch in self._ray.get(refs):
+            out.extend(batch)
+        return out
+
+    def close(self) -> None:
+        if self._owns and self._ray.is_initialized():
+            self._ray.shutdown()
+        self._owns = False
+
+    def __enter__(self) -> RayEvaluator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def describe(self) -> str:
+        return f"Ray at {self.address} ({self.workers} CPUs)"
+
+
+def _ray_remote_entry(token: str, init: tuple, fn: Callable[[Any], Any], batch: list) -> list:
+    """The function Ray runs remotely (``init``: the (initializer, initargs) pair, from the object store)."""
+    initializer, initargs = init
+    return _ray_batch(token, initializer, initargs, fn, batch)
+
+
+def make_evaluator(ray_address: str | None = None, workers: int | None = None,
+                   initializer: Callable[..., None] | None = None, initargs: Sequence[Any] = (),
+                   chunksize: int | None = None) -> ProcessPoolEvaluator | RayEvaluator:
+    """`RayEvaluator` when ``ray_address`` is given (``workers`` is then the local Ray's CPU count, for
+    ``"local"`` only), else `ProcessPoolEvaluator` with ``workers`` processes (None: every core)."""
+    if ray_address:
+        return RayEvaluator(ray_address, num_cpus=workers if ray_address == "local" else None,
+                            initializer=initializer, initargs=initargs, chunksize=chunksize)
+    return ProcessPoolEvaluator(workers, initializer=initializer, initargs=initargs, chunksize=chunksize)

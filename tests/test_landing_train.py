@@ -1,0 +1,380 @@
+"""Evolution of the landing policy (issue 5, parts 4–5): the evaluator interface, `TrainConfig`, and
+`train_landing` on tiny runs — deterministic, resumable bit for bit, identical whatever the evaluator,
+its policy file loads and runs, f-only mode. Motion samples are recorded here from short drops with a
+hand-written spine rule (the samples module's format: orientation, height_m, vectors, heights_mm,
+final_up_z)."""
+
+from __future__ import annotations
+
+import json
+import math
+import operator
+import sys
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+
+from felis.errors import ParameterError
+from felis.learning import landing_train as lt
+from felis.learning.evaluator import Evaluator, ProcessPoolEvaluator, make_evaluator
+from felis.learning.landing_nets import ComplexBehaviour, load_policy, random_simple
+
+STEPS = 40  # 0.4 s: a drop from 0.6 m lands after about 0.3 s
+HEIGHT = 0.6
+ORIENTATIONS = ((0.0, 0.0, 0.0), (180.0, 0.0, 0.0), (90.0, 0.0, 0.0))
+TINY = lt.TrainConfig(seed=3, population=4, generations_simple=2, generations_complex=2, orientations=(0, 1),
+                      steps=STEPS, pca_dims=4, workers=1)
+
+
+@dataclass(frozen=True)
+class FakeSample:
+    orientation: tuple[float, float, float]
+    height_m: float
+    vectors: np.ndarray
+    heights_mm: np.ndarray
+    final_up_z: float
+
+
+def spine_rule(it, t):
+    """A hand-written sample motion (§6.5): the spine turns in a circle, tail and legs fixed."""
+    v = np.zeros(12)
+    v[0], v[1] = 6.0 * math.cos(8.0 * t), 6.0 * math.sin(8.0 * t)
+    return v
+
+
+@pytest.fixture(scope="module")
+def samples():
+    from felis.learning.landing_eval import LandingSim
+
+    sim = LandingSim()
+    try:
+        out = []
+        for o in ORIENTATIONS:
+            r = lt._rollout(sim, o, spine_rule, HEIGHT, STEPS)
+            out.append(FakeSample(o, HEIGHT, r.vectors, r.heights_mm, r.final_up_z))
+        return out
+    finally:
+        sim.close()
+
+
+def _train(tmp_path, samples, cfg=TINY, name="run", **kw):
+    out = tmp_path / name / "policy.npz"
+    res = lt.train_landing(cfg, out, tmp_path / name / "work", samples=samples, **kw)
+    return out, res
+
+
+def _numbers(res: dict) -> str:
+    """The results without the run's wall time and evaluator: what must repeat bit for bit."""
+    return json.dumps({k: v for k, v in res.items() if k != "run"}, sort_keys=True)
+
+
+def _arrays(path) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _same_files(a, b) -> None:
+    x, y = _arrays(a), _arrays(b)
+    assert x.keys() == y.keys()
+    for k in x:
+        if k == "__meta__":
+            mx, my = json.loads(str(x[k])), json.loads(str(y[k]))
+            assert mx == my
+        else:
+            assert np.array_equal(x[k], y[k]), k
+
+
+# ----------------------------------------------------------------------------------------- evaluator
+def test_process_pool_evaluator_keeps_job_order():
+    jobs = list(range(-20, 21))
+    with ProcessPoolEvaluator(workers=2, chunksize=3) as ev:
+        assert isinstance(ev, Evaluator)
+        assert ev.map(abs, jobs) == [abs(j) for j in jobs]
+        assert ev.map(abs, []) == []
+        assert ev.map(operator.neg, jobs) == [-j for j in jobs]  # the pool serves several maps
+    inline = ProcessPoolEvaluator(workers=1)
+    assert inline.map(abs, jobs) == [abs(j) for j in jobs]
+    inline.close()
+
+
+def test_a_dying_worker_is_one_line():
+    import os
+
+    from felis.learning.evaluator import EvaluatorError
+
+    ev = ProcessPoolEvaluator(workers=2)
+    try:
+        with pytest.raises(EvaluatorError, match="died") as e:
+            ev.map(os._exit, [3, 3])
+        assert "\n" not in str(e.value)
+        assert ev.map(abs, [-1]) == [1]  # a fresh pool serves the next map
+    finally:
+        ev.close()
+
+
+def test_inline_evaluator_runs_its_initializer_once():
+    calls = []
+    ev = ProcessPoolEvaluator(workers=1, initializer=calls.append, initargs=("x",))
+    ev.map(abs, [1, 2])
+    ev.map(abs, [3])
+    assert calls == ["x"]
+
+
+@pytest.mark.parametrize("kw", [{"workers": 0}, {"workers": 1.5}, {"workers": True}, {"chunksize": 0}])
+def test_evaluator_bad_settings_are_one_line(kw):
+    with pytest.raises(ParameterError) as e:
+        ProcessPoolEvaluator(**kw)
+    assert "\n" not in str(e.value)
+
+
+def test_make_evaluator_without_ray_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray → ImportError
+    with pytest.raises(ParameterError, match=r"felis\[cluster\]") as e:
+        make_evaluator(ray_address="local")
+    assert "\n" not in str(e.value)
+    assert isinstance(make_evaluator(workers=1), ProcessPoolEvaluator)
+
+
+# ------------------------------------------------------------------------------------------- config
+@pytest.mark.parametrize("kw, words", [
+    ({"population": 1}, "population"),
+    ({"population": 2.5}, "population"),
+    ({"generations_simple": 0}, "generations_simple"),
+    ({"generations_complex": -1}, "generations_complex"),
+    ({"elite_frac": 1.5}, "elite_frac"),
+    ({"elimination_frac": -0.1}, "elimination_frac"),
+    ({"p_weight": float("nan")}, "p_weight"),
+    ({"sigma": -1.0}, "sigma"),
+    ({"sigma": float("inf")}, "sigma"),
+    ({"max_hidden": 0}, "max_hidden"),
+    ({"pca_dims": 0}, "pca_dims"),
+    ({"steps": 1}, "steps"),
+    ({"workers": 0}, "workers"),
+    ({"seed": -1}, "seed"),
+    ({"tournament": 0}, "tournament"),
+    ({"orientations": (0, 0)}, "twice"),
+    ({"orientations": (-1,)}, "orientations"),
+    ({"use_similarity": "yes"}, "use_similarity"),
+    ({"ray_address": ""}, "ray_address"),
+    ({"population": 4, "elite_frac": 0.5, "elimination_frac": 0.5}, "room"),
+])
+def test_config_bad_values_are_one_line(kw, words):
+    with pytest.raises(ParameterError, match=words) as e:
+        lt.TrainConfig(**kw)
+    assert "\n" not in str(e.value)
+
+
+def test_config_counts():
+    cfg = lt.TrainConfig(population=24, elite_frac=0.1, elimination_frac=0.2)
+    assert (cfg.n_elite, cfg.n_eliminate) == (2, 4)
+    assert lt.TrainConfig(population=4, elite_frac=0.0).n_elite == 1  # the best always survives
+    assert lt.TrainConfig(orientations=[2, 0]).orientations == (2, 0)
+
+
+def test_bad_orientation_index_and_output_name(tmp_path, samples):
+    with pytest.raises(ParameterError, match="out of range") as e:
+        _train(tmp_path, samples, replace(TINY, orientations=(0, 7)))
+    assert "\n" not in str(e.value)
+    with pytest.raises(ParameterError, match=r"\.npz"):
+        lt.train_landing(TINY, tmp_path / "policy.txt", tmp_path / "w", samples=samples)
+
+
+# --------------------------------------------------------------------------------------- pieces
+def test_score_of_the_sample_itself_has_zero_distance(samples):
+    task, idx = lt.make_task(TINY, samples)
+    assert idx == [0, 1] and task.orientations == ORIENTATIONS[:2]
+    s = samples[1]
+    marks = lt.score(task, 1, lt.Rollout(s.vectors, s.heights_mm, s.final_up_z))
+    assert marks.shape == (5,) and marks[1] == 0.0 and marks[2] == 0.0 and marks[3] == s.final_up_z
+    assert marks[4] == 0.0 and lt.score(task, 1, lt.Rollout(s.vectors, s.heights_mm, 1.0, landed=True))[4] == 1.0
+    diverged = lt.score(task, 0, lt.Rollout(s.vectors[:3], s.heights_mm[:3], float("nan"), complete=False))
+    assert diverged.tolist() == [0.0, lt.DIVERGED, lt.DIVERGED, -1.0, 0.0]
+
+
+def test_rollouts_repeat_on_a_reused_sim(samples):
+    """Workers reuse one sim for many rollouts: a rollout must not depend on what ran before."""
+    from felis.learning.landing_eval import LandingSim
+
+    task, _ = lt.make_task(TINY, samples)
+    b = random_simple(np.random.default_rng(5))
+    sim = LandingSim()
+    try:
+        first = lt.score(task, 0, lt.run_rollout(sim, task, b, 0))
+        lt.run_rollout(sim, task, random_simple(np.random.default_rng(6)), 1)
+        again = lt.score(task, 0, lt.run_rollout(sim, task, b, 0))
+    finally:
+        sim.close()
+    assert np.array_equal(first, again)
+
+
+def test_short_rollout_matches_the_samples_rollout_at_full_length():
+    """`_rollout` (any length, for quick runs) records what `landing_samples.rollout` does at STEPS."""
+    from felis.learning import landing_samples
+    from felis.learning.landing_eval import LandingSim
+
+    b = random_simple(np.random.default_rng(2))
+    sim = LandingSim()
+    try:
+        ours = lt._rollout(sim, (135.0, 0.0, 0.0), b, 1.0, landing_samples.STEPS)
+        theirs = landing_samples.rollout(sim, (135.0, 0.0, 0.0), b, 1.0)
+        task = replace(lt.make_task(TINY, [FakeSample((135.0, 0.0, 0.0), 1.0, theirs.vectors, theirs.heights_mm,
+                                                      theirs.final_up_z)] * 2)[0], steps=landing_samples.STEPS)
+        via_task = lt.run_rollout(sim, task, b, 0)
+    finally:
+        sim.close()
+    assert ours.complete and lt.STEPS == landing_samples.STEPS
+    for r in (ours, via_task):
+        assert np.array_equal(r.vectors, theirs.vectors) and np.array_equal(r.heights_mm, theirs.heights_mm)
+        assert r.final_up_z == theirs.final_up_z and r.landed == theirs.landed
+
+
+def test_missing_samples_file_is_one_line(tmp_path):
+    with pytest.raises(ParameterError) as e:
+        lt.train_landing(replace(TINY, samples=str(tmp_path / "none.json")), tmp_path / "p.npz", tmp_path / "w")
+    assert "none.json" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_f_only_ranking_ignores_similarity():
+    marks = np.array([[1.0, 50.0, 9.0, 1.0, 0.0], [1.0, 10.0, 9.0, 1.0, 0.0], [2.0, 99.0, 9.0, 1.0, 0.0]])
+    order, _ = lt.rank_marks(marks, use_similarity=True)
+    assert order.tolist() == [2, 1, 0]
+    order, score = lt.rank_marks(marks, use_similarity=False)
+    assert order.tolist() == [2, 0, 1] and score[0] == score[1]  # f ties: index order
+
+
+def test_next_generation_keeps_the_best_first_and_the_size():
+    cfg = lt.TrainConfig(population=10, elite_frac=0.2, elimination_frac=0.3)
+    rng = np.random.default_rng(0)
+    pop = [random_simple(rng) for _ in range(10)]
+    marks = np.column_stack((np.arange(10.0), np.zeros(10), np.zeros(10)))
+    order, score = lt.rank_marks(marks, True)
+    new = lt.breed_simple(pop, order, score, cfg, rng)
+    assert len(new) == 10
+    assert new[0] is pop[9] and new[1] is pop[8]  # elites unchanged, best first
+    assert all(b not in pop[:3] for b in new)  # the three worst were eliminated (and are no parents)
+
+
+# ----------------------------------------------------------------------------------------- training
+def test_training_writes_policy_results_curves_and_is_deterministic(tmp_path, samples):
+    seen = []
+    out, res = _train(tmp_path, samples, progress=lambda *a: seen.append(a[:3]))
+    assert seen == [("simple", 1, 2), ("simple", 2, 2), ("complex", 1, 2), ("complex", 2, 2)]
+    stem = out.with_suffix("")
+    assert out.exists() and (tmp_path / "run" / "policy.curves.png").stat().st_size > 1000
+    on_disk = json.loads(stem.with_name("policy.results.json").read_text())
+    assert _numbers(on_disk) == _numbers(res)
+    assert res["config"]["population"] == 4 and "workers" not in res["config"]
+    assert len(res["simple"]) == 2 and all(len(c["best_f"]) == 2 for c in res["simple"])
+    assert len(res["complex"]["best_mean_f"]) == 2 and len(res["final"]) == 2
+    assert set(res["final"][0]) >= {"f", "D", "S", "up_z", "success", "landed", "orientation"}
+    for c in res["simple"]:
+        assert c["best_D"][1] <= c["best_D"][0] or c["best_f"][1] > c["best_f"][0]  # the best survives
+        for first, col in (("first_success", "best_success"), ("first_landed", "best_landed")):
+            fs = c[first]
+            assert fs is None or (c[col][fs - 1] and not any(c[col][:fs - 1]))
+    assert res["generations_to_first_success"]["simple"] == [c["first_success"] for c in res["simple"]]
+    assert res["generations_to_first_landing"]["simple"] == [c["first_landed"] for c in res["simple"]]
+
+    out2, res2 = _train(tmp_path, samples, name="again")
+    assert _numbers(res2) == _numbers(res)
+    _same_files(out, out2)
+    _, res3 = _train(tmp_path, samples, replace(TINY, seed=4), name="other")
+    assert _numbers(res3) != _numbers(res)
+
+
+class _Stop(Exception):
+    pass
+
+
+def _stop_at(stage, generation):
+    def progress(s, g, total, info):
+        if (s, g) == (stage, generation):
+            raise _Stop
+    return progress
+
+
+@pytest.mark.parametrize("stage, generation", [("simple", 1), ("simple", 2), ("complex", 1)])
+def test_resume_is_bit_identical(tmp_path, samples, stage, generation):
+    out, res = _train(tmp_path, samples, name="whole")
+    with pytest.raises(_Stop):
+        _train(tmp_path, samples, name="cut", progress=_stop_at(stage, generation))
+    assert (tmp_path / "cut" / "work" / lt.CHECKPOINT).exists() and not (tmp_path / "cut" / "policy.npz").exists()
+    seen = []
+    out2, res2 = _train(tmp_path, samples, name="cut", resume=True, progress=lambda *a: seen.append(a[:2]))
+    assert res2["run"]["resumed"] and seen[0] != ("simple", 1)
+    assert _numbers(res2) == _numbers(res)
+    _same_files(out, out2)
+
+
+def test_resume_refuses_other_settings_and_restarts_without_checkpoint(tmp_path, samples):
+    with pytest.raises(_Stop):
+        _train(tmp_path, samples, name="r", progress=_stop_at("simple", 1))
+    with pytest.raises(lt.CheckpointError, match="seed") as e:
+        _train(tmp_path, samples, replace(TINY, seed=9), name="r", resume=True)
+    assert "\n" not in str(e.value)
+    with pytest.raises(lt.CheckpointError, match="samples"):
+        _train(tmp_path, samples[::-1], name="r", resume=True)
+    _, res = _train(tmp_path, samples, replace(TINY, workers=2), name="r", resume=True)  # runtime settings may change
+    assert res["run"]["resumed"]
+    _, fresh = _train(tmp_path, samples, name="new", resume=True)  # nothing to resume: a fresh start
+    assert not fresh["run"]["resumed"] and _numbers(fresh) == _numbers(res)
+
+
+def test_one_and_two_workers_give_identical_results(tmp_path, samples):
+    out1, res1 = _train(tmp_path, samples, name="one")
+    out2, res2 = _train(tmp_path, samples, replace(TINY, workers=2), name="two")
+    assert res2["run"]["evaluator"].startswith("process pool (2")
+    assert _numbers(res1) == _numbers(res2)
+    _same_files(out1, out2)
+
+
+def test_policy_file_loads_and_runs_in_the_landing_controller(tmp_path, samples):
+    from felis.controllers.landing import LandingController
+    from felis.learning.landing_eval import LandingSim
+    from felis.sim.drops import Drop
+
+    out, res = _train(tmp_path, samples)
+    policy, meta = load_policy(out)
+    assert isinstance(policy, ComplexBehaviour) and len(policy.behaviours) == 2
+    assert meta["seed"] == TINY.seed and meta["steps"] == STEPS and meta["orientations"] == [[0, 0, 0], [180, 0, 0]]
+    sim = LandingSim()
+    try:
+        ctl = LandingController(policy)
+        outcome = sim.run(Drop(180.0, 0.0, 0.0, HEIGHT), ctl, duration=0.5)
+        assert ctl.held == 0 and outcome.why != "physics diverged"
+        # the file's policy scores as the training's final entry did
+        task, _ = lt.make_task(TINY, samples)
+        marks = lt.score(task, 1, lt.run_rollout(sim, task, policy, 1))
+    finally:
+        sim.close()
+    final = res["final"][1]
+    assert marks.tolist() == [final["f"], final["D"], final["S"], final["up_z"], float(final["landed"])]
+
+
+def test_f_only_mode_runs(tmp_path, samples):
+    _, res = _train(tmp_path, samples, replace(TINY, use_similarity=False, generations_complex=1), name="f")
+    assert res["config"]["use_similarity"] is False
+    assert len(res["simple"][0]["best_f"]) == 2 and len(res["complex"]["best_mean_f"]) == 1
+    _, res_sim = _train(tmp_path, samples, replace(TINY, generations_complex=1), name="fds")
+    assert _numbers(res) != _numbers(res_sim)
+
+
+def test_ray_evaluator_matches_the_process_pool(tmp_path, samples):
+    """A tiny training on Ray started locally with 2 CPUs gives the same numbers as the process pool (and
+    inline). Ray comes with the `cluster` extra, which `make` installs: no skip."""
+    import ray
+
+    from felis.learning.evaluator import RayEvaluator
+
+    _, inline = _train(tmp_path, samples, name="inline")
+    _, pool = _train(tmp_path, samples, replace(TINY, workers=2), name="pool")
+    assert _numbers(pool) == _numbers(inline)
+    with RayEvaluator("local", num_cpus=2, chunksize=3) as ev:  # starts Ray; training below joins it
+        jobs = list(range(-10, 11))
+        assert ev.map(abs, jobs) == [abs(j) for j in jobs]
+        _, on_ray = _train(tmp_path, samples, replace(TINY, workers=2, ray_address="local"), name="ray")
+        assert ray.is_initialized()  # the training's evaluator did not own the session, so left it running
+    assert not ray.is_initialized()
+    assert on_ray["run"]["evaluator"].startswith("Ray")
+    assert _numbers(on_ray) == _numbers(inline)
