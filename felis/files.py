@@ -8,6 +8,7 @@ that must never be seen half-written (plots, calibration, servo parameters) go t
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from collections.abc import Callable
@@ -108,3 +109,19 @@ def sync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def read_json(path: str | Path, what: str, error: type[FelisError] = FelisError, hint: str = "") -> object:
+    """Parse the JSON file ``path`` (a ``what``: "push file", "drops file", …); a missing, unreadable or
+    malformed file is one-line ``error`` naming it (``hint`` is added to "no such …", e.g. how to make one)."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise error(f"{path}: no such {what}{hint}") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, not a {what}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise error(f"{path}: cannot read: {type(e).__name__}: {getattr(e, 'strerror', None) or e}") from None
+    except json.JSONDecodeError as e:
+        raise error(f"{path}: not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None

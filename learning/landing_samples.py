@@ -457,17 +457,10 @@ def _read_arrays(path: Path) -> dict[str, np.ndarray]:
 def load_samples(path: str | Path) -> list[Sample]:
     """Read what `make_samples` wrote (the .json and the .npz beside it); one-line ParameterError naming the
     file on a missing, corrupt or mismatched file."""
+    from felis.files import read_json
+
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ParameterError(f"{path}: no such landing samples file (make it with: {COMMAND})") from None
-    except IsADirectoryError:
-        raise ParameterError(f"{path}: is a directory, not a landing samples file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ParameterError(f"{path}: cannot read: {type(e).__name__}") from None
-    except json.JSONDecodeError as e:
-        raise ParameterError(f"{path}: not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    doc = read_json(path, "landing samples file", ParameterError, hint=f" (make it with: {COMMAND})")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ParameterError(f"{path}: not a landing samples file (format {FORMAT!r})")
     if doc.get("version") != VERSION:

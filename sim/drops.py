@@ -17,7 +17,6 @@ the pure rule; `LandingJudge` measures its inputs at the physics rate.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -75,17 +74,10 @@ def check_drop(item: object, where: str = "drop") -> Drop:
 
 def load_drops(path: str | Path) -> list[Drop]:
     """Read a drops file; one-line ParameterError naming the file (and item, and field) on any fault."""
+    from felis.files import read_json
+
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ParameterError(f"{path}: no such drops file") from None
-    except IsADirectoryError:
-        raise ParameterError(f"{path}: is a directory, not a drops file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ParameterError(f"{path}: cannot read: {type(e).__name__}: {getattr(e, 'strerror', None) or e}") from None
-    except json.JSONDecodeError as e:
-        raise ParameterError(f"{path}: not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    doc = read_json(path, "drops file", ParameterError)
     if not isinstance(doc, list) or not doc:
         raise ParameterError(f"{path}: expected a non-empty JSON list of drops {{{', '.join(_FIELDS)}}}")
     return [check_drop(item, f"{path}: drop {i}") for i, item in enumerate(doc)]

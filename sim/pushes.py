@@ -14,7 +14,6 @@ other than the feet touches the ground or the upper body tilts past `FALL_TILT_D
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -83,15 +82,10 @@ def check_push(item: object, where: str = "push") -> Push:
 
 def load_pushes(path: str | Path) -> list[Push]:
     """Read a push file; one-line ParameterError naming the file (and item) on any fault."""
+    from felis.files import read_json
+
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ParameterError(f"{path}: no such push file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ParameterError(f"{path}: cannot read: {e}") from None
-    except json.JSONDecodeError as e:
-        raise ParameterError(f"{path}: not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    doc = read_json(path, "push file", ParameterError)
     if not isinstance(doc, list) or not doc:
         raise ParameterError(f"{path}: expected a non-empty JSON list of pushes")
     return [check_push(item, f"{path}: push {i}") for i, item in enumerate(doc)]

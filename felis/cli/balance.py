@@ -16,6 +16,8 @@ import json
 import sys
 from pathlib import Path
 
+from felis.cli.output import check_json_out, write_json_out
+from felis.cli.output import progress as _progress
 from felis.errors import ParameterError
 
 DEFAULT_TRAIN_OUT = Path("runs/train-balance/balance_selector.npz")
@@ -67,26 +69,6 @@ def _reaction(text: str) -> str:
                          "or selector")
 
 
-def _progress(total: int, label: str, quiet: bool, lines: bool = False):
-    """A rich progress bar on a terminal; with ``lines`` (no terminal, not --json) a line per 10 %."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                   TimeElapsedColumn(), TimeRemainingColumn(), disable=quiet, transient=True)
-    task = bar.add_task(label, total=total)
-    done = [0, 0]
-
-    def step(n: int) -> None:
-        bar.update(task, advance=n)
-        done[0] += n
-        tenth = done[0] * 10 // max(total, 1)
-        if lines and tenth > done[1]:
-            done[1] = tenth
-            print(f"{label}: {done[0]}/{total}", flush=True)
-
-    return bar, step
-
-
 def cmd_eval_balance(args) -> int:
     from felis.learning.balance_eval import run_push_virtual, run_pushes, summarise
     from felis.sim.pushes import pushes_from
@@ -97,12 +79,7 @@ def cmd_eval_balance(args) -> int:
         raise ParameterError("--selector needs --reaction selector")
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
-    if args.out is not None:
-        from felis.files import check_target
-
-        if args.out.suffix.lower() != ".json":
-            raise ParameterError(f"{args.out}: the result file must end in .json")
-        check_target(args.out, "result", ParameterError)
+    check_json_out(args.out)
     quiet = args.json or not sys.stderr.isatty()
     if args.backend == "dxl":
         if args.port != "virtual":
@@ -130,10 +107,7 @@ def cmd_eval_balance(args) -> int:
     res = {**summarise(outcomes), "reaction": args.reaction, "backend": args.backend,
            "pushes_source": args.pushes, "seed": args.seed, "pushes": [o.as_dict() for o in outcomes]}
     res = {k: res[k] for k in ("recall", "false_alarm_rate", "median_lead_s", "fall_rate", *res)}  # headline first
-    if args.out is not None:
-        from felis.files import write_atomic
-
-        write_atomic(args.out, json.dumps(res, indent=1) + "\n", "result", ParameterError)
+    write_json_out(args.out, res)
     if args.json:
         print(json.dumps(res, indent=1))
         return 0

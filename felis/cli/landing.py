@@ -111,7 +111,8 @@ def cmd_train_landing(args) -> int:
 
 
 def cmd_eval_landing(args) -> int:
-    from felis.cli.balance import _progress
+    from felis.cli.output import check_json_out, write_json_out
+    from felis.cli.output import progress as _progress
     from felis.learning.landing_eval import check_policy, default_policy, run_drops, summarise
     from felis.sim.drops import drops_from
 
@@ -120,12 +121,7 @@ def cmd_eval_landing(args) -> int:
     check_policy(args.policy)
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
-    if args.out is not None:
-        from felis.files import check_target
-
-        if args.out.suffix.lower() != ".json":
-            raise ParameterError(f"{args.out}: the result file must end in .json")
-        check_target(args.out, "result", ParameterError)
+    check_json_out(args.out)
     quiet = args.json or not sys.stderr.isatty()
     bar, step = _progress(len(drops), "drops", quiet)
     with bar:
@@ -134,10 +130,7 @@ def cmd_eval_landing(args) -> int:
     res = {"success_rate": summary["success_rate"], "policy": args.policy, **summary,
            "drops_source": args.drops, "seed": args.seed if args.drops.startswith("random:") else None}
     res["drops"] = res.pop("drops")  # the per-drop list last, after the headline and the counts
-    if args.out is not None:
-        from felis.files import write_atomic
-
-        write_atomic(args.out, json.dumps(res, indent=1) + "\n", "result", ParameterError)
+    write_json_out(args.out, res)
     if args.json:
         print(json.dumps(res, indent=1))
         return 0
