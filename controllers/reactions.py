@@ -134,14 +134,13 @@ class ReactiveController:
         self.base, self.monitor, self.reaction = base, monitor, reaction
         self.hold_s, self.blend_s = float(hold_s), float(blend_s)
         self.name = f"{getattr(base, 'name', 'base')}+balance"
-        self._own_gate = False
 
     def reset(self, spec: RobotSpec, state: State) -> None:
         self.spec = spec
         self.base.reset(spec, state)
         self.monitor.reset()
         if self.monitor.gait is None and callable(getattr(self.base, "gait", None)):
-            self.monitor.gait, self._own_gate = self.base.gait, True
+            self.monitor.gait = self.base.gait
         self.alarm_t: float | None = None  # first alarm (a fall predicted)
         self.react_t: float | None = None  # first reaction (a warning or an alarm)
         self.strategy: str | None = None  # the first reaction's strategy

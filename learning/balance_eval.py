@@ -24,7 +24,6 @@ else the peak tilt / 60° (< 1). Lower is better.
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -258,9 +257,3 @@ def demonstrate(pushes: Sequence[Push], workers: int | None = None, monitor: dic
         scores[:, k] = [o.score for o in res]
     X = np.array([o.features for o in alarmed]).reshape(len(alarmed), len(FEATURES))
     return X, scores, [o.push for o in alarmed]
-
-
-def lead_ok(outcomes: Sequence[PushOutcome]) -> float:
-    """Fraction of detected falls with at least 150 ms of warning (the human reaction window)."""
-    leads = [o.lead_s for o in outcomes if o.detected]
-    return float(np.mean([v >= 0.15 for v in leads])) if leads else math.nan
