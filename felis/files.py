@@ -125,3 +125,48 @@ def read_json(path: str | Path, what: str, error: type[FelisError] = FelisError,
         raise error(f"{path}: cannot read: {type(e).__name__}: {getattr(e, 'strerror', None) or e}") from None
     except json.JSONDecodeError as e:
         raise error(f"{path}: not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+
+
+def read_npz(path: str | Path, what: str, error: type[FelisError] = FelisError) -> dict:
+    """All arrays of an ``.npz`` (``allow_pickle=False``); error with one line for a missing,
+    unreadable, truncated or non-npz file, one holding pickled objects or a member that is not an array.
+    ``what`` names the file kind ("weights", "selector", …), ``error`` the exception to raise."""
+    import zipfile
+    import zlib
+
+    import numpy as np
+
+    path = Path(path)
+    if not path.exists():
+        raise error(f"{path}: no such {what} file")
+    if path.is_dir():
+        raise error(f"{path}: is a directory, not a {what} file")
+    try:
+        z = np.load(path, allow_pickle=False)
+    except ValueError:  # neither zip nor .npy magic: numpy would have to unpickle it
+        raise error(f"{path}: not a {what} file (.npz): neither an npz archive nor an array "
+                           "(a pickle or a text file?)") from None
+    except PermissionError:
+        raise error(f"{path}: cannot read {what} file: permission denied") from None
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        raise error(f"{path}: corrupt or truncated {what} file ({one_line(e)})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise error(f"{path}: a single .npy array, not a {what} file (.npz)")
+    try:
+        with z:
+            data = {k: z[k] for k in z.files}
+    except ValueError as e:
+        if "Object arrays" in str(e) or "pickle" in str(e):
+            raise error(f"{path}: holds pickled objects, which felis refuses to load") from None
+        raise error(f"{path}: corrupt {what} file ({one_line(e)})") from None
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
+        raise error(f"{path}: corrupt or truncated {what} file ({one_line(e)})") from None
+    odd = [k for k, v in data.items() if not isinstance(v, np.ndarray)]
+    if odd:  # a zip member that is not a .npy array comes back as raw bytes
+        raise error(f"{path}: member {odd[0]!r} is not an array; corrupt or not a {what} file")
+    return data
+
+
+def one_line(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text[:200]}"

@@ -74,8 +74,6 @@ missing, corrupt, truncated, foreign or mismatched file with one-line `SelectorE
 from __future__ import annotations
 
 import json
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -83,6 +81,8 @@ from typing import Any
 import numpy as np
 
 from felis.errors import FelisError
+from felis.files import one_line as _one_line
+from felis.files import read_npz
 
 STRATEGIES: tuple[str, ...] = ("none", "brace", "crouch", "step")
 
@@ -491,33 +491,7 @@ def _expect(path: Path, what: str, have: tuple[str, ...], want: Any) -> None:
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    if not path.exists():
-        raise SelectorError(f"{path}: no such selector file")
-    if path.is_dir():
-        raise SelectorError(f"{path}: is a directory, not a selector file")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except ValueError:
-        raise SelectorError(f"{path}: not a selector file (.npz): not an npz archive (a pickle or text?)") from None
-    except PermissionError:
-        raise SelectorError(f"{path}: cannot read selector file: permission denied") from None
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-        raise SelectorError(f"{path}: corrupt or truncated selector file ({_one_line(e)})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise SelectorError(f"{path}: a single .npy array, not a selector file (.npz)")
-    try:
-        with z:
-            data = {key: z[key] for key in z.files}
-    except ValueError as e:
-        if "pickle" in str(e) or "Object arrays" in str(e):
-            raise SelectorError(f"{path}: holds pickled objects, which felis refuses to load") from None
-        raise SelectorError(f"{path}: corrupt selector file ({_one_line(e)})") from None
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
-        raise SelectorError(f"{path}: corrupt or truncated selector file ({_one_line(e)})") from None
-    odd = [key for key, value in data.items() if not isinstance(value, np.ndarray)]
-    if odd:  # a zip member that is not a .npy array comes back as raw bytes
-        raise SelectorError(f"{path}: member {odd[0]!r} is not an array; corrupt or not a selector file")
-    return data
+    return read_npz(path, "selector", SelectorError)
 
 
 def _read_meta(data: dict[str, np.ndarray], path: Path) -> dict[str, Any]:
@@ -538,8 +512,6 @@ def _read_meta(data: dict[str, np.ndarray], path: Path) -> dict[str, Any]:
     return meta
 
 
-def _one_line(e: BaseException) -> str:
-    return f"{type(e).__name__}: {' '.join(str(e).split())[:200]}"
 
 
 class SvmSelector(_Selector):

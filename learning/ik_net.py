@@ -39,8 +39,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import zipfile
-import zlib
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, is_dataclass
 from pathlib import Path
@@ -463,37 +461,10 @@ def _jsonable(obj: Any) -> Any:
 
 
 def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
-    """All arrays of an ``.npz`` (``allow_pickle=False``); WeightsError with one line for a missing,
-    unreadable, truncated or non-npz file or one holding pickled objects. ``what`` names the file kind."""
-    if not path.exists():
-        raise WeightsError(f"{path}: no such {what} file")
-    if path.is_dir():
-        raise WeightsError(f"{path}: is a directory, not a {what} file")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except ValueError:  # neither zip nor .npy magic: numpy would have to unpickle it
-        raise WeightsError(f"{path}: not a {what} file (.npz): neither an npz archive nor an array "
-                           "(a pickle or a text file?)") from None
-    except PermissionError:
-        raise WeightsError(f"{path}: cannot read {what} file: permission denied") from None
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-        raise WeightsError(f"{path}: corrupt or truncated {what} file ({_one_line(e)})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise WeightsError(f"{path}: a single .npy array, not a {what} file (.npz)")
-    try:
-        with z:
-            return {k: z[k] for k in z.files}
-    except ValueError as e:
-        if "Object arrays" in str(e) or "pickle" in str(e):
-            raise WeightsError(f"{path}: holds pickled objects, which felis refuses to load") from None
-        raise WeightsError(f"{path}: corrupt {what} file ({_one_line(e)})") from None
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
-        raise WeightsError(f"{path}: corrupt or truncated {what} file ({_one_line(e)})") from None
+    """All arrays of an ``.npz``; one-line WeightsError on a bad file (`felis.files.read_npz`)."""
+    from felis.files import read_npz as _read
 
-
-def _one_line(e: BaseException) -> str:
-    text = " ".join(str(e).split())
-    return f"{type(e).__name__}: {text[:200]}"
+    return _read(path, what, WeightsError)
 
 
 def read_meta(data: Mapping[str, np.ndarray], path: Path, what: str) -> dict[str, Any]:

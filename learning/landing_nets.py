@@ -37,8 +37,6 @@ from __future__ import annotations
 
 import json
 import math
-import zipfile
-import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +45,8 @@ from typing import Any, TypeVar
 import numpy as np
 
 from felis.errors import FelisError, ParameterError
+from felis.files import one_line as _one_line
+from felis.files import read_npz
 from felis.servos import SERVOS
 
 
@@ -620,33 +620,9 @@ def save_policy(path: str | Path, behaviour: SimpleBehaviour | ComplexBehaviour,
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    if not path.exists():
-        raise PolicyError(f"{path}: no such landing policy file")
-    if path.is_dir():
-        raise PolicyError(f"{path}: is a directory, not a landing policy file")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except ValueError:
-        raise PolicyError(f"{path}: not a landing policy file (.npz): neither an npz archive nor an array") from None
-    except PermissionError:
-        raise PolicyError(f"{path}: cannot read landing policy file: permission denied") from None
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-        raise PolicyError(f"{path}: corrupt or truncated landing policy file ({_one_line(e)})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise PolicyError(f"{path}: a single .npy array, not a landing policy file (.npz)")
-    try:
-        with z:
-            return {k: z[k] for k in z.files}
-    except ValueError as e:
-        if "pickle" in str(e) or "Object arrays" in str(e):
-            raise PolicyError(f"{path}: holds pickled objects, which felis refuses to load") from None
-        raise PolicyError(f"{path}: corrupt landing policy file ({_one_line(e)})") from None
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
-        raise PolicyError(f"{path}: corrupt or truncated landing policy file ({_one_line(e)})") from None
+    return read_npz(path, "landing policy", PolicyError)
 
 
-def _one_line(e: BaseException) -> str:
-    return f"{type(e).__name__}: {' '.join(str(e).split())[:200]}"
 
 
 def _load_unit(path: Path, data: Mapping[str, np.ndarray], units: Mapping[str, Any], name: str,
