@@ -170,3 +170,26 @@ def read_npz(path: str | Path, what: str, error: type[FelisError] = FelisError) 
 def one_line(e: BaseException) -> str:
     text = " ".join(str(e).split())
     return f"{type(e).__name__}: {text[:200]}"
+
+
+def check_fields(item: object, fields: tuple[str, ...], where: str, error: type[FelisError] = FelisError) -> dict:
+    """``item`` as a JSON object with exactly ``fields``: one-line ``error`` naming ``where`` otherwise."""
+    if not isinstance(item, dict):
+        raise error(f"{where}: expected an object with {', '.join(fields)}, got {type(item).__name__}")
+    missing = [k for k in fields if k not in item]
+    if missing:
+        raise error(f"{where}: missing {', '.join(missing)}")
+    extra = sorted(set(item) - set(fields))
+    if extra:
+        raise error(f"{where}: unknown field {extra[0]!r} (fields: {', '.join(fields)})")
+    return item
+
+
+def finite_number(item: dict, key: str, where: str, error: type[FelisError] = FelisError) -> float:
+    """``item[key]`` as a finite float (not a bool, not a string); one-line ``error`` otherwise."""
+    import math
+
+    v = item[key]
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise error(f"{where}: {key} must be a finite number, got {v!r}")
+    return float(v)

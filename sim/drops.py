@@ -25,6 +25,7 @@ import mujoco
 import numpy as np
 
 from felis.errors import ParameterError
+from felis.files import check_fields, finite_number
 from felis.sim.landing import ImpactRecorder
 from felis.sim.robot import MujocoRobot
 from felis.sim.scenarios import MAX_DROP_HEIGHT
@@ -49,20 +50,8 @@ class Drop:
 
 def check_drop(item: object, where: str = "drop") -> Drop:
     """One drop from a JSON object; ParameterError naming ``where`` and the field on any fault."""
-    if not isinstance(item, dict):
-        raise ParameterError(f"{where}: expected an object with {', '.join(_FIELDS)}, got {type(item).__name__}")
-    missing = [k for k in _FIELDS if k not in item]
-    if missing:
-        raise ParameterError(f"{where}: missing {', '.join(missing)}")
-    extra = sorted(set(item) - set(_FIELDS))
-    if extra:
-        raise ParameterError(f"{where}: unknown field {extra[0]!r} (fields: {', '.join(_FIELDS)})")
-    nums = {}
-    for k in _FIELDS:
-        v = item[k]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise ParameterError(f"{where}: {k} must be a finite number, got {v!r}")
-        nums[k] = float(v)
+    check_fields(item, _FIELDS, where, ParameterError)
+    nums = {k: finite_number(item, k, where, ParameterError) for k in _FIELDS}
     for k in _FIELDS[:3]:
         if abs(nums[k]) > MAX_ANGLE_DEG:
             raise ParameterError(f"{where}: {k} must be within ±{MAX_ANGLE_DEG:g} degrees, got {nums[k]:g}")

@@ -22,6 +22,7 @@ import mujoco
 import numpy as np
 
 from felis.errors import ParameterError
+from felis.files import check_fields, finite_number
 from felis.sim.robot import MujocoRobot
 from felis.sim.scenarios import MAX_IMPULSE, push
 
@@ -52,25 +53,13 @@ class Push:
 
 def check_push(item: object, where: str = "push") -> Push:
     """One push from a JSON object; ParameterError naming ``where`` and the field on any fault."""
-    if not isinstance(item, dict):
-        raise ParameterError(f"{where}: expected an object with {', '.join(_FIELDS)}, got {type(item).__name__}")
-    missing = [k for k in _FIELDS if k not in item]
-    if missing:
-        raise ParameterError(f"{where}: missing {', '.join(missing)}")
-    extra = sorted(set(item) - set(_FIELDS))
-    if extra:
-        raise ParameterError(f"{where}: unknown field {extra[0]!r} (fields: {', '.join(_FIELDS)})")
+    check_fields(item, _FIELDS, where, ParameterError)
     body, phase = item["body"], item["phase"]
     if body not in BODIES:
         raise ParameterError(f"{where}: body {body!r} is not one of {', '.join(BODIES)}")
     if phase not in PHASES:
         raise ParameterError(f"{where}: phase {phase!r} is not one of {', '.join(PHASES)}")
-    nums = {}
-    for k in ("direction_deg", "impulse_ns", "t_s"):
-        v = item[k]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise ParameterError(f"{where}: {k} must be a finite number, got {v!r}")
-        nums[k] = float(v)
+    nums = {k: finite_number(item, k, where, ParameterError) for k in ("direction_deg", "impulse_ns", "t_s")}
     if not 0 < nums["impulse_ns"] <= MAX_IMPULSE:
         raise ParameterError(f"{where}: impulse_ns must be above 0 and at most {MAX_IMPULSE:g} N·s, "
                              f"got {nums['impulse_ns']:g}")

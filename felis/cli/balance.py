@@ -16,7 +16,7 @@ import json
 import sys
 from pathlib import Path
 
-from felis.cli.output import check_json_out, write_json_out
+from felis.cli.output import check_json_out, emit
 from felis.cli.output import progress as _progress
 from felis.errors import ParameterError
 
@@ -107,12 +107,7 @@ def cmd_eval_balance(args) -> int:
     res = {**summarise(outcomes), "reaction": args.reaction, "backend": args.backend,
            "pushes_source": args.pushes, "seed": args.seed, "pushes": [o.as_dict() for o in outcomes]}
     res = {k: res[k] for k in ("recall", "false_alarm_rate", "median_lead_s", "fall_rate", *res)}  # headline first
-    write_json_out(args.out, res)
-    if args.json:
-        print(json.dumps(res, indent=1))
-        return 0
-    _print_summary(res)
-    return 0
+    return emit(args, res, _print_summary)
 
 
 def _print_summary(r: dict) -> None:

@@ -111,7 +111,7 @@ def cmd_train_landing(args) -> int:
 
 
 def cmd_eval_landing(args) -> int:
-    from felis.cli.output import check_json_out, write_json_out
+    from felis.cli.output import check_json_out, emit
     from felis.cli.output import progress as _progress
     from felis.learning.landing_eval import check_policy, default_policy, run_drops, summarise
     from felis.sim.drops import drops_from
@@ -130,12 +130,7 @@ def cmd_eval_landing(args) -> int:
     res = {"success_rate": summary["success_rate"], "policy": args.policy, **summary,
            "drops_source": args.drops, "seed": args.seed if args.drops.startswith("random:") else None}
     res["drops"] = res.pop("drops")  # the per-drop list last, after the headline and the counts
-    write_json_out(args.out, res)
-    if args.json:
-        print(json.dumps(res, indent=1))
-        return 0
-    _print_summary(res)
-    return 0
+    return emit(args, res, _print_summary)
 
 
 def _print_summary(r: dict) -> None:

@@ -45,3 +45,13 @@ def write_json_out(path: Path | None, result: dict) -> None:
         from felis.files import write_atomic
 
         write_atomic(path, json.dumps(result, indent=1) + "\n", "result", ParameterError)
+
+
+def emit(args, result: dict, print_summary) -> int:
+    """The end of an eval command: ``--out`` written, then JSON (``--json``) or the text summary."""
+    write_json_out(args.out, result)
+    if args.json:
+        print(json.dumps(result, indent=1))
+    else:
+        print_summary(result)
+    return 0
