@@ -56,6 +56,8 @@ FOOT_DOWN_M = 0.03  # feet within this height of the lowest count as down
 STILL_MS = 0.05  # CoM speed (m/s) below which a balanced robot is "standing"
 MIN_LEG_M = 0.02  # l is clamped to at least this (a robot lying down)
 CLASSES = ("unknown", "standing", "moving", "unbalanced", "falling")
+SUPPORTS = ("feet", "down")  # the BoS: the hull of every foot, or of the feet down only
+CLEAR_M = 0.004  # m: a lowest point other than the feet this close to the ground raises the alarm
 
 
 def convex_hull(points: np.ndarray) -> np.ndarray:
@@ -146,6 +148,7 @@ class Assessment:
     omega0: float
     down: tuple[bool, ...] | None  # per foot: used for the BoS
     warning: bool = False  # margin below warn_m: time to react
+    clearance: float = math.nan  # m: the lowest point other than the feet, above the ground
 
     @property
     def balanced(self) -> bool:
@@ -166,13 +169,17 @@ class BalanceMonitor:
     """
 
     def __init__(self, body: BodyModel, *, on_m: float = 0.01, on_ticks: int = 1, gait_ticks: int = 3,
-                 off_m: float = 0.01, off_ticks: int = 10, warn_m: float = 0.03,
+                 diverge_ms: float = 0.1, off_m: float = 0.01, off_ticks: int = 10, warn_m: float = 0.03,
+                 clear_m: float = CLEAR_M, support: str = "feet",
                  gait: Callable[[float], object] | None = None, use_truth: bool = True):
-        for name, v in (("on_m", on_m), ("off_m", off_m)):
+        for name, v in (("on_m", on_m), ("off_m", off_m), ("diverge_ms", diverge_ms), ("clear_m", clear_m)):
             if not math.isfinite(v) or v < 0:
-                raise ParameterError(f"balance monitor: {name} must be ≥ 0 m, got {v}")
+                raise ParameterError(f"balance monitor: {name} must be ≥ 0, got {v}")
         if min(on_ticks, gait_ticks, off_ticks) < 1:
             raise ParameterError("balance monitor: on_ticks, gait_ticks and off_ticks must be ≥ 1")
+        if support not in SUPPORTS:
+            raise ParameterError(f"balance monitor: support must be one of {', '.join(SUPPORTS)}, got {support!r}")
+        self.diverge_ms, self.clear_m, self.support = float(diverge_ms), float(clear_m), support
         self.body = body
         if not math.isfinite(warn_m):
             raise ParameterError(f"balance monitor: warn_m must be finite, got {warn_m}")
@@ -187,6 +194,7 @@ class BalanceMonitor:
         self.alarm = False
         self.last: Assessment | None = None
         self._below = self._above = 0
+        self._run: list[tuple[float, float]] = []  # (t, margin) of the ticks below −on_m, latest last
         self._prev: tuple[float, list, list] | None = None  # t, com, feet of the last tick
 
     # ------------------------------------------------------------------ per tick
@@ -212,11 +220,11 @@ class BalanceMonitor:
         if truth is not None:
             com, feet, vel = truth.com.tolist(), truth.feet.tolist(), truth.com_vel.tolist()
             touching = (state.contacts if state.contacts is not None else truth.foot_force > 0).tolist()
-            force = truth.foot_force.tolist()
+            force, low = truth.foot_force.tolist(), truth.low
         else:
             if state.imu is None:
                 return None
-            c, f = self.body.com_and_feet(state.q, state.imu.quat)
+            c, f, low = self.body.com_feet_low(state.q, state.imu.quat)
             com, feet, vel, force = c.tolist(), f.tolist(), None, None
             touching = state.contacts.tolist() if state.contacts is not None else [False] * len(feet)
         if not math.isfinite(sum(com) + sum(map(sum, feet)) + (sum(vel) if vel is not None else 0.0)):
@@ -233,7 +241,7 @@ class BalanceMonitor:
             vel = [vel[0] - dv[0], vel[1] - dv[1], vel[2] - dv[2]]
         else:  # d/dt (CoM − stance feet): already relative
             vel = dv
-        use = list(down)
+        use = [True] * len(feet) if self.support == "feet" else list(down)
         support = [(p[0], p[1]) for p in feet]
         if stepping:  # the swinging feet land where the body carries them: ahead by v·(time to touchdown)
             swing = getattr(gait, "swing", None)
@@ -255,9 +263,10 @@ class BalanceMonitor:
                 cop = (sum(f * p[0] for f, p in zip(fs, feet, strict=True)) / total,
                        sum(f * p[1] for f, p in zip(fs, feet, strict=True)) / total)
         cls = self._classify(vel, xi, cop, b)
-        self._hysteresis(b, self.gait_ticks if stepping else self.on_ticks)
+        clearance = low - ground  # NaN (no low points) compares False below
+        self._hysteresis(state.t, b, stepping, clearance < self.clear_m)
         return Assessment(state.t, cls, self.alarm, b, xi, tuple(com), tuple(vel), cop, hull, w0, tuple(use),
-                          b < self.warn_m)
+                          b < self.warn_m, clearance)
 
     def _stance_velocity(self, t: float, com: list, feet: list, stance: list, feet_only: bool) -> list[float]:
         """With the simulator's truth: the stance feet's mean velocity over the last tick (they slide
@@ -289,16 +298,25 @@ class BalanceMonitor:
         ahead = vel[0] * (xi[0] - cop[0]) + vel[1] * (xi[1] - cop[1])
         return "unbalanced" if ahead > 0 else "moving"  # XCoM beyond the CoP along the motion
 
-    def _hysteresis(self, b: float, on_ticks: int) -> None:
+    def _hysteresis(self, t: float, b: float, stepping: bool, grounded: bool) -> None:
+        """Raise: `on_ticks` ticks below −on_m standing; while a gait runs, `gait_ticks` ticks and the
+        margin still falling over them (by ≥ diverge_ms); at once when the body nears the ground.
+        Clear: `off_ticks` ticks above off_m."""
+        run = self._run
         if b < -self.on_m:
-            self._below += 1
             self._above = 0
-        elif b > self.off_m:
-            self._above += 1
-            self._below = 0
+            run.append((t, b))
         else:
-            self._below = self._above = 0
-        if not self.alarm and self._below >= on_ticks:
-            self.alarm = True
-        elif self.alarm and self._above >= self.off_ticks:
+            run.clear()
+            self._above = self._above + 1 if b > self.off_m else 0
+        need = self.gait_ticks if stepping else self.on_ticks
+        if len(run) > need:
+            del run[:-need]
+        if not self.alarm:
+            if grounded:
+                self.alarm = True
+            elif len(run) >= need:
+                (t0, b0), (t1, b1) = run[0], run[-1]
+                self.alarm = not stepping or (t1 > t0 and (b1 - b0) < -self.diverge_ms * (t1 - t0))
+        elif self._above >= self.off_ticks:
             self.alarm = False

@@ -21,7 +21,7 @@ dozen numpy calls, no loop over bodies), reusing scratch buffers: one model per 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -35,7 +35,10 @@ class BodyModel:
     frame; mass (kg); joints: (n_bodies, 2) indices into the description's joint order (−1 none);
     axis: (n_joints, 3) unit hinge axes per description joint; feet: body indices of the feet in the
     description's ``sensors.contacts`` order; foot_radius (m): a foot touches the ground that far
-    below its centre; imu_rot: the IMU site's orientation in the root body frame.
+    below its centre; imu_rot: the IMU site's orientation in the root body frame; low_body / low_point /
+    low_radius: points bounding the collision geometry outside the feet from below (body index, point
+    in the body frame, radius; `felis.sim.robot.collision_points`): the robot's lowest point other than
+    its feet is min (p_b + R_b · point)_z − radius.
     """
 
     names: tuple[str, ...]
@@ -49,6 +52,9 @@ class BodyModel:
     feet: np.ndarray
     foot_radius: float
     imu_rot: np.ndarray
+    low_body: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    low_point: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    low_radius: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self):
         n_b, n_j = len(self.names), self.axis.shape[0]
@@ -117,11 +123,20 @@ class BodyModel:
 
     def com_and_feet(self, q: np.ndarray, imu_quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """CoM (3,) and foot centres (k, 3), world-aligned, from joint angles and the IMU quaternion."""
+        com, feet, _ = self.com_feet_low(q, imu_quat)
+        return com, feet
+
+    def com_feet_low(self, q: np.ndarray, imu_quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """`com_and_feet`, and the z of the lowest point other than the feet (NaN without low points)."""
         root_rot = quat_matrix(imu_quat)
         if self._imu_turned:
             root_rot = root_rot @ self._imu_rot_t
-        p, _, com = self.forward(np.asarray(q, dtype=float), root_rot)
-        return com, p[self.feet]
+        p, R, com = self.forward(np.asarray(q, dtype=float), root_rot)
+        low = math.nan
+        if self.low_body.size:  # (R_b · point)_z is the dot product of R_b's last row with the point
+            b = self.low_body
+            low = float(np.min(p[b, 2] + np.einsum("pj,pj->p", R[b, 2], self.low_point) - self.low_radius))
+        return com, p[self.feet], low
 
 
 def quat_matrix(q: np.ndarray) -> np.ndarray:

@@ -62,13 +62,16 @@ class Truth:
 
     com / com_vel: the robot's centre of mass (m) and its velocity (m/s); feet: foot body centres
     (k, 3) and foot_force: their normal contact forces (N), both in ``RobotSpec.sensors.contacts``
-    order. Monitors use it where present and estimate the same quantities on hardware.
+    order; low: the height (m) of the robot's lowest point other than its feet (the lowest point of
+    its collision geometry outside the foot bodies), NaN where unknown. Monitors use it where present
+    and estimate the same quantities on hardware.
     """
 
     com: np.ndarray
     com_vel: np.ndarray
     feet: np.ndarray
     foot_force: np.ndarray
+    low: float = float("nan")
 
 
 @dataclass(frozen=True)

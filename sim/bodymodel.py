@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 
 from felis.bodymodel import BodyModel, quat_matrix
-from felis.sim.robot import ModelMismatch, load_model, model_path
+from felis.sim.robot import ModelMismatch, collision_points, load_model, model_path
 from felis.spec import RobotSpec
 
 
@@ -63,13 +63,15 @@ def load_body_model(spec: RobotSpec) -> BodyModel:
         if sid < 0 or m.site_bodyid[sid] != root:
             raise ModelMismatch(f"{path.name}: body model: the IMU site must be on the root body")
         imu_rot = quat_matrix(m.site_quat[sid])
+    lb, lp, lr = collision_points(m, set(bodies) - {bodies[f] for f in feet})
     return BodyModel(
         names=tuple(m.body(b).name for b in bodies),
         parent=np.array([index.get(int(m.body_parentid[b]), -1) if b != root else -1 for b in bodies]),
         pos=np.array([m.body_pos[b] for b in bodies]),
         rot=np.array([quat_matrix(m.body_quat[b]) for b in bodies]),
         com=np.array([m.body_ipos[b] for b in bodies]), mass=mass, joints=joints, axis=axis,
-        feet=np.array(feet, dtype=int), foot_radius=radius, imu_rot=imu_rot)
+        feet=np.array(feet, dtype=int), foot_radius=radius, imu_rot=imu_rot,
+        low_body=np.array([index[b] for b in lb], dtype=int), low_point=lp, low_radius=lr)
 
 
 def _under(m: mujoco.MjModel, b: int, root: int) -> bool:

@@ -15,6 +15,7 @@ system identification (`felis.calib.sysid`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -31,6 +32,43 @@ from felis.spec import RobotSpec
 MODELS_DIR = resources.files("felis.sim") / "models"
 TOUCH_THRESHOLD_N = 1e-3
 STAND_LIFT_M = 0.25  # fixed base: the root body is lifted this much above its MJCF pose (the stand)
+
+
+def collision_points(m: mujoco.MjModel, bodies) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points bounding the collision geometry of ``bodies`` from below, in their body frames.
+
+    Returns (body (P,), point (P, 3), radius (P,)): the lowest point of the geometry is
+    min over P of (p_body + R_body · point)_z − radius, exactly for boxes (8 corners, radius 0),
+    spheres (the centre, r) and capsules (the two end centres, r); cylinders count as capsules and
+    ellipsoids and meshes as spheres of their bounding radius (lower than the true point: on the safe
+    side for a clearance check).
+    """
+    T = mujoco.mjtGeom
+    out_b, out_p, out_r = [], [], []
+    for g in range(m.ngeom):
+        b = int(m.geom_bodyid[g])
+        if b not in bodies or not (m.geom_contype[g] or m.geom_conaffinity[g]):
+            continue
+        s, t = m.geom_size[g], int(m.geom_type[g])
+        if t == T.mjGEOM_BOX:
+            local = np.array([[x, y, z] for x in (-s[0], s[0]) for y in (-s[1], s[1]) for z in (-s[2], s[2])])
+            r = np.zeros(8)
+        elif t in (int(T.mjGEOM_CAPSULE), int(T.mjGEOM_CYLINDER)):
+            local, r = np.array([[0.0, 0.0, -s[1]], [0.0, 0.0, s[1]]]), np.full(2, s[0])
+        elif t == T.mjGEOM_SPHERE:
+            local, r = np.zeros((1, 3)), np.array([s[0]])
+        elif t == T.mjGEOM_PLANE:
+            continue
+        else:
+            local, r = np.zeros((1, 3)), np.array([m.geom_rbound[g]])
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, m.geom_quat[g])
+        out_b += [b] * len(local)
+        out_p.append(m.geom_pos[g] + local @ rot.reshape(3, 3).T)
+        out_r.append(r)
+    if not out_b:
+        return np.zeros(0, dtype=int), np.zeros((0, 3)), np.zeros(0)
+    return np.array(out_b, dtype=int), np.concatenate(out_p), np.concatenate(out_r)
 
 
 class ModelMismatch(FelisError):
@@ -218,6 +256,9 @@ class MujocoRobot(RobotBase):
         if free.size and self._touch is not None:
             self._truth_root = int(m.jnt_bodyid[free[0]])
             self._feet = np.array([mujoco.mj_name2id(m, O.mjOBJ_BODY, f) for f in sens.contacts])
+            feet = set(self._feet.tolist())
+            robot = {b for b in range(m.nbody) if m.body_rootid[b] == m.body_rootid[self._truth_root]}
+            self._low = collision_points(m, robot - feet)
 
     # ------------------------------------------------------------------ torque
     def _set_torque(self, mask: np.ndarray) -> None:
@@ -262,8 +303,12 @@ class MujocoRobot(RobotBase):
         if self._truth_root is not None:
             mujoco.mj_subtreeVel(self.model, d)
             b = self._truth_root
+            lb, lp, lr = self._low
+            low = math.nan
+            if lb.size:  # z of the lowest point: p_z + (R · point)_z − r
+                low = float(np.min(d.xpos[lb, 2] + np.einsum("pj,pj->p", d.xmat[lb, 6:9], lp) - lr))
             truth = Truth(com=d.subtree_com[b].copy(), com_vel=d.subtree_linvel[b].copy(),
-                          feet=d.xpos[self._feet], foot_force=sd[self._touch])
+                          feet=d.xpos[self._feet], foot_force=sd[self._touch], low=low)
         return State(t=float(d.time), q=q, dq=dq, effort=effort, imu=imu, contacts=contacts,
                      height=height, faults=self._faults, truth=truth)
 

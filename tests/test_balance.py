@@ -160,8 +160,9 @@ def test_warning_and_classes(body):
 
 # ----------------------------------------------------------------------------------- gait gate
 def test_gait_gate_two_feet_down(body):
-    """A trot: one diagonal on the ground, ξ over the body centre. Without the gate the BoS is the
-    diagonal's line and ξ is off it; with the gate the swinging feet count and all is well."""
+    """A trot: one diagonal on the ground, ξ over the body centre. With the BoS of the feet down only
+    (``support="down"``) and no gate the BoS is the diagonal's line and ξ is off it; with the gate the
+    swinging feet count and all is well. The default BoS (every foot) counts them anyway."""
     feet = np.array([[0.1, 0.05], [0.1, -0.05], [-0.1, 0.05], [-0.1, -0.05]])  # fl, fr, hl, hr
     down = np.array([True, False, False, True])  # fl + hr down
     feet3 = np.column_stack([feet, [body.foot_radius, body.foot_radius + 0.04, body.foot_radius + 0.04,
@@ -172,18 +173,44 @@ def test_gait_gate_two_feet_down(body):
         return State(t=s.t, q=s.q, dq=s.dq, imu=s.imu, contacts=down,
                      truth=Truth(s.truth.com, s.truth.com_vel, feet3, s.truth.foot_force))
 
-    plain = BalanceMonitor(body)
+    plain = BalanceMonitor(body, support="down")
     a = plain.assess(state(0.0))
     assert len(a.support) == 2 and a.margin < -0.005 and a.alarm
     gait = Gait(stepping=True, phase=0.6, swing=~down, frequency_hz=2.0, amplitude=1.0, touchdown_s=0.0)
-    gated = BalanceMonitor(body, gait=lambda t: gait)
-    a = gated.assess(state(0.0))
-    assert len(a.support) == 4 and a.margin == pytest.approx(0.03) and not a.alarm
-    # while stepping the alarm needs gait_ticks ticks below −on_m; standing, on_ticks
-    gated = BalanceMonitor(body, on_ticks=1, gait_ticks=3, gait=lambda t: gait)
-    assert _run_margins(gated, body, [-0.03, -0.03, -0.03, -0.03]) == [False, False, True, True]
+    for gated in (BalanceMonitor(body, support="down", gait=lambda t: gait), BalanceMonitor(body)):
+        a = gated.assess(state(0.0))
+        assert len(a.support) == 4 and a.margin == pytest.approx(0.03) and not a.alarm
+
+
+def test_gait_gate_needs_a_diverging_margin(body):
+    """While stepping the alarm needs gait_ticks ticks below −on_m with the margin still falling by
+    ≥ diverge_ms (a plateau is a foot about to land; a fall diverges); standing, on_ticks."""
+    gait = Gait(stepping=True, phase=0.6, swing=np.zeros(4, bool), frequency_hz=2.0, amplitude=1.0)
+    plateau, falling = [-0.03] * 5, [-0.02, -0.03, -0.04, -0.05, -0.06]
+    slow = [-0.02, -0.0205, -0.021, -0.0215]  # 0.05 m/s < diverge_ms = 0.1 m/s
+    gated = lambda: BalanceMonitor(body, on_ticks=1, gait_ticks=3, gait=lambda t: gait)  # noqa: E731
+    assert _run_margins(gated(), body, plateau) == [False] * 5
+    assert _run_margins(gated(), body, slow) == [False] * 4
+    assert _run_margins(gated(), body, falling) == [False, False, True, True, True]
+    assert _run_margins(gated(), body, [-0.02, -0.03, 0.0, -0.04, -0.05, -0.06]) == [False] * 5 + [True]
     standing = BalanceMonitor(body, on_ticks=1, gait_ticks=3)
-    assert _run_margins(standing, body, [-0.03, -0.03]) == [True, True]
+    assert _run_margins(standing, body, plateau[:2]) == [True, True]
+
+
+def test_clearance_raises_the_alarm(body):
+    """A body part other than the feet within clear_m of the ground raises the alarm at once, whatever
+    the margin (a collapse: the rear sags onto the floor with ξ inside the BoS)."""
+    def state(t, low):
+        s = _state(t, [0.0, 0.0, 0.1], [0, 0, 0], SQUARE, body)
+        return State(t=s.t, q=s.q, dq=s.dq, imu=s.imu, contacts=s.contacts,
+                     truth=Truth(s.truth.com, s.truth.com_vel, s.truth.feet, s.truth.foot_force, low=low))
+
+    mon = BalanceMonitor(body)
+    a = mon.assess(state(0.0, 0.010))
+    assert a.clearance == pytest.approx(0.010) and a.margin > 0.04 and not a.alarm
+    a = mon.assess(state(0.01, 0.003))
+    assert a.clearance == pytest.approx(0.003) and a.alarm
+    assert not BalanceMonitor(body, clear_m=0.0).assess(state(0.0, 0.003)).alarm
 
 
 def test_gait_gate_projects_swing_feet(body):
@@ -233,6 +260,10 @@ def test_monitor_arguments(body):
         BalanceMonitor(body, on_m=-1)
     with pytest.raises(ParameterError, match="ticks"):
         BalanceMonitor(body, gait_ticks=0)
+    with pytest.raises(ParameterError, match="support"):
+        BalanceMonitor(body, support="contacts")
+    with pytest.raises(ParameterError, match="clear_m"):
+        BalanceMonitor(body, clear_m=math.nan)
 
 
 # ----------------------------------------------------------------------------------- body model
@@ -251,11 +282,27 @@ def test_body_model_matches_mujoco(spec, body):
         d.qpos[3:7] = euler_quat(*rng.uniform(-180, 180, 3))
         d.qpos[robot._qadr] = q
         mujoco.mj_forward(m, d)
-        com, f = body.com_and_feet(q, d.sensordata[0:4])
+        com, f, low = body.com_feet_low(q, d.sensordata[0:4])
         np.testing.assert_allclose(com, d.subtree_com[root] - d.xpos[root], atol=1e-12)
         np.testing.assert_allclose(f, d.xpos[feet] - d.xpos[root], atol=1e-12)
+        # the lowest point outside the feet: the same as the simulator's truth, and as MuJoCo's own geoms
+        assert low == pytest.approx(robot.read().truth.low - d.xpos[root, 2], abs=1e-12)
+        lowest = min(_lowest_geom_point(m, d, g) for g in range(m.ngeom)
+                     if m.geom_contype[g] and m.geom_bodyid[g] not in feet and m.geom_bodyid[g] != 0)
+        assert low == pytest.approx(lowest - d.xpos[root, 2], abs=1e-12)
     assert body.total_mass == pytest.approx(sum(spec.links.values()))
     robot.close()
+
+
+def _lowest_geom_point(m, d, g) -> float:
+    """World z of a box's, sphere's or capsule's lowest point, from MuJoCo's geom frames."""
+    R, p, s, t = d.geom_xmat[g].reshape(3, 3), d.geom_xpos[g], m.geom_size[g], int(m.geom_type[g])
+    if t == mujoco.mjtGeom.mjGEOM_BOX:
+        return p[2] - float(np.abs(R[2]) @ s)
+    if t == mujoco.mjtGeom.mjGEOM_CAPSULE:
+        return p[2] - abs(R[2, 2]) * s[1] - s[0]
+    assert t == mujoco.mjtGeom.mjGEOM_SPHERE
+    return p[2] - s[0]
 
 
 def test_estimate_agrees_with_truth_under_a_push(spec, body):
