@@ -79,3 +79,8 @@ class TrajectoryError(FelisError):
 class WeightsError(FelisError):
     """A weights file (``.npz``) is missing, corrupt, for another model or shape, or holds non-finite
     values. The controller refuses it before moving anything."""
+
+
+class PhaseError(FelisError):
+    """Gait data for phase learning is unusable: a run log that is missing, too short or holds NaN joint
+    values, a recording that tipped the cat over, or a corrupt or mismatched gait-data file (``.npz``)."""

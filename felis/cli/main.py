@@ -369,6 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
     __import__("felis.cli.virtualbus", fromlist=["register"]).register(sub, _Parser)  # felis virtual-bus
     __import__("felis.cli.calib", fromlist=["register"]).register(sub, _Parser)  # setup-motors, calibrate, …
     __import__("felis.cli.sysid", fromlist=["register"]).register(sub, _Parser)  # felis sysid
+    __import__("felis.cli.phase", fromlist=["register"]).register(sub, _Parser)  # felis phase record
 
     train = sub.add_parser("train", help="train learned controllers: ik, balance")
     trainsub = train.add_subparsers(dest="train_command", metavar="WHAT", parser_class=_Parser)
