@@ -1,0 +1,552 @@
+"""The periodic autoencoder (PAE) and Fourier latent dynamics (FLD): a gait window → per-channel phase,
+frequency, amplitude and offset; the same parameters rolled forward in time to predict the next windows.
+
+Method: seed 003 (``003_1dde03cf3fe89d53.txt``), "PAE" §2–3 and "FLD"; summary in
+``shared/reference/methods.md``, "Periodic autoencoder and Fourier latent dynamics".
+
+Input. A window x ∈ R^{J×W}: J joint angles (rad) over W frames at ``rate_hz``. The net sees
+x̂_j = (x_j − μ_j) / σ_j with per-joint statistics of the training data (buffers ``mean``, ``std``).
+The paper's windows are de-meaned per window and not scaled; here the mean pose is information the
+offset b should carry, and joints of very different ranges are put on one scale.
+
+Encoder. z = Conv1d(H→M, K)(ELU(Conv1d(J→H, K)(x̂))) ∈ R^{M×W}, "same" zero padding (K odd). The paper
+follows each convolution with batch normalisation; there is none here, so training and inference
+compute the same function and `PaeNumpy` is exact (the input standardisation does that job). The
+paper's kernel spans the whole window; the default K = 25 (0.25 s at 100 Hz, half a 2 Hz stride) costs
+a quarter of that (`PaeNumpy` ≈ 130 µs per window against ≈ 450 µs for K = 101, J = 12, W = 100).
+
+FFT parameterisation (`fft_params`), per latent channel z ∈ R^W, c = rfft(z), c_k = Σ_n z_n e^{−2πikn/W}::
+
+    p_k = |c_k|²,  k = 1 … ⌊W/2⌋          (power; the DC bin k = 0 is left out)
+    f_k = k · rate / W                    (Hz; grid step rate / W)
+    f   = Σ_k p_k f_k / (Σ_k p_k + ε)     (power-weighted mean frequency)
+    A   = 2 √(Σ_k p_k + ε) / W
+    b   = Re c_0 / W                      (the window mean)
+
+By Parseval, Σ_{n}(z_n − z̄)² = (2 Σ_{k<W/2} p_k + p_{W/2}) / W, so A = √2 · rms(z − z̄) when W is odd or
+the Nyquist bin k = W/2 is empty (that bin would count twice). A pure on-grid sinusoid a·sin(2πk₀n/W + θ)
+with 0 < k₀ < W/2 has |c_{k₀}| = aW/2 and nothing else, so A = a, f = k₀·rate/W, b its mean: exact. A sum
+of such sinusoids gives A = √(Σ a_i²). Off the grid the window cuts the wave with a jump between its
+ends, whose leakage decays only as 1/k²; f is then biased upward: at W = 100 by at most 1.21 grid
+steps (worst phase, 2.6 cycles per window), ≤ 1 step from 4 cycles up, far less when the ends meet.
+ε = 1e-12 keeps a flat channel (Σp = 0) finite: f = 0, A ≈ 2·10⁻⁶/W.
+
+Phase. Per channel m a linear layer over the window, (s_x, s_y) = z_m · V_m + β_m with V ∈ R^{M×W×2}
+(one layer per channel, batched), φ = atan2(s_y, s_x) / 2π wrapped to [0, 1).
+
+Rebuild (`latent_wave`). ẑ_m(t_k) = A_m sin(2π(f_m t_k + φ_m)) + b_m on the centred time axis
+t_k = (k − (W−1)/2) / rate, k = 0 … W−1: φ is the phase at the window's centre. With the on-grid wave
+z = a sin(2π(f₀t + φ₀)) + b and V_x(t_k) = (2/W) sin 2πf₀t_k, V_y(t_k) = (2/W) cos 2πf₀t_k, β = 0, the
+layer gives (s_x, s_y) = a (cos 2πφ₀, sin 2πφ₀), so φ = φ₀ and ẑ = z exactly (the tests use this).
+
+Decoder. ŷ = Conv1d(H→J, K)(ELU(Conv1d(M→H, K)(ẑ))), normalised units; `decode` returns
+y = ŷ σ + μ in radians. The reconstruction loss is the MSE on normalised windows, mean (ŷ − x̂)².
+
+Phase manifold (`manifold`). P = (A_1 sin 2πφ_1, A_1 cos 2πφ_1, …, A_M sin 2πφ_M, A_M cos 2πφ_M) ∈ R^{2M}.
+
+FLD (`propagate`, `fld_terms`, `fld_loss`, `predict`, `predict_frames`). f, A, b are held constant over the horizon and
+the phase advances: φ_i = φ_0 + i f Δt. A sequence is N+1 windows S_0 … S_N of one trajectory, S_i
+starting ``step`` frames after S_{i−1}, so Δt = step / rate (1/rate for consecutive frames). Only S_0 is
+encoded; L_i = MSE(dec(φ_0 + i f Δt, f, A, b), S_i) (normalised units) and L_FLD = Σ_{i=0}^{N} α^i L_i.
+
+"Now" is the last frame of the input window (frame W−1). Predicted window i covers the W frames
+ending at now + i·step, so its last frame is the prediction of the joint angles i·step frames ahead;
+the N-step trajectory prediction is the last frame of each predicted window (`predict(...)[..., -1]`,
+`predict_frames` with ``frame=-1``), as in the paper. The decoder's last frames are its weakest (its
+convolutions see zero padding there), so `predict_frames` can also read an inner frame c of a window
+propagated (W−1−c)/rate further, which predicts the same instant while holding f, A, b constant
+longer; `felis.learning.phase_train.evaluate_phase` reports both. Which wins depends on the data: on a
+tiny net (H = 8) the centre read was 7× better; on the default net trained on a gait with a drifting
+frequency the last frame was 1.7× better (FLD's loss trains the edge frames too).
+
+`PaeNumpy` runs the encoder with numpy only (no torch import; controllers load it cheaply). The
+weights file is one ``.npz`` (no pickle): the state-dict arrays (float32) and a JSON ``__meta__``.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from felis.errors import ParameterError, PhaseError
+
+if TYPE_CHECKING:  # torch is imported lazily: inference with PaeNumpy must not pay for it
+    import torch
+
+MODEL_ID = "felis-pae"
+SCHEMA = 1
+META_KEY = "__meta__"
+RESERVED_META = ("model", "schema", "config")
+EPS = 1e-12
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class PaeConfig:
+    """The shape of a PAE: ``n_joints`` J inputs, ``window`` W frames at ``rate_hz``, ``n_phases`` M latent
+    channels, ``hidden`` H convolution channels, ``kernel`` K (odd, ≤ 2W−1) frames per convolution;
+    ``joints`` the joint names in input order (optional, stored in the weights file)."""
+
+    n_joints: int
+    window: int
+    n_phases: int = 5
+    hidden: int = 32
+    kernel: int = 25
+    rate_hz: float = 100.0
+    joints: tuple[str, ...] | None = None
+
+    def __post_init__(self):
+        for f in ("n_joints", "window", "n_phases", "hidden", "kernel"):
+            v = getattr(self, f)
+            if not isinstance(v, int | np.integer) or isinstance(v, bool) or v < 1:
+                raise ParameterError(f"PAE {f} must be a positive integer, got {v!r}")
+            object.__setattr__(self, f, int(v))
+        if self.window < 4:
+            raise ParameterError(f"PAE window must be at least 4 frames, got {self.window}")
+        if self.kernel % 2 == 0 or self.kernel > 2 * self.window - 1:
+            raise ParameterError(f"PAE kernel must be odd and at most 2·window − 1 = {2 * self.window - 1}, "
+                                 f"got {self.kernel}")
+        r = self.rate_hz
+        if isinstance(r, bool) or not isinstance(r, int | float) or not (math.isfinite(r) and r > 0):
+            raise ParameterError(f"PAE rate_hz must be a positive number, got {r!r}")
+        object.__setattr__(self, "rate_hz", float(r))
+        if self.joints is not None:
+            names = tuple(self.joints)
+            if len(names) != self.n_joints or not all(isinstance(n, str) and n for n in names):
+                raise ParameterError(f"PAE joints must be {self.n_joints} non-empty names, got {list(names)!r}")
+            object.__setattr__(self, "joints", names)
+
+    def shapes(self) -> dict[str, tuple[int, ...]]:
+        """State-dict key → shape of every array of the model (normalisation buffers included)."""
+        J, W, M, H, K = self.n_joints, self.window, self.n_phases, self.hidden, self.kernel
+        return {"mean": (J,), "std": (J,),
+                "enc1.weight": (H, J, K), "enc1.bias": (H,), "enc2.weight": (M, H, K), "enc2.bias": (M,),
+                "phase_weight": (M, W, 2), "phase_bias": (M, 2),
+                "dec1.weight": (H, M, K), "dec1.bias": (H,), "dec2.weight": (J, H, K), "dec2.bias": (J,)}
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["joints"] = None if self.joints is None else list(self.joints)
+        return d
+
+    @classmethod
+    def from_json(cls, d: Any) -> PaeConfig:
+        """Inverse of `to_json`; ParameterError for a non-object, unknown or missing keys, bad values."""
+        if not isinstance(d, Mapping):
+            raise ParameterError(f"PAE config must be an object, got {type(d).__name__}")
+        unknown = set(d) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ParameterError(f"PAE config has unknown keys {', '.join(sorted(unknown))}")
+        try:
+            return cls(**d)
+        except TypeError as e:
+            raise ParameterError(f"PAE config is incomplete: {e}") from None
+
+    @property
+    def param_count(self) -> int:
+        """Trainable parameters (not the normalisation statistics)."""
+        return sum(math.prod(s) for k, s in self.shapes().items() if k not in ("mean", "std"))
+
+
+def window_time(window: int, rate_hz: float) -> np.ndarray:
+    """The centred time axis t_k = (k − (W−1)/2) / rate (s), k = 0 … W−1 (float64)."""
+    return (np.arange(window) - (window - 1) / 2) / rate_hz
+
+
+# --------------------------------------------------------------------------------------------- torch
+
+
+def fft_params(z: torch.Tensor, rate_hz: float, eps: float = EPS):
+    """(freq Hz, amp, offset), each (…, M), of latent curves z (…, M, W); formulas in the module docstring."""
+    import torch
+
+    W = z.shape[-1]
+    c = torch.fft.rfft(z, dim=-1)
+    p = c[..., 1:].real.square() + c[..., 1:].imag.square()
+    fk = torch.arange(1, W // 2 + 1, dtype=z.dtype, device=z.device) * (rate_hz / W)
+    total = p.sum(-1)
+    freq = (p * fk).sum(-1) / (total + eps)
+    amp = 2.0 * torch.sqrt(total + eps) / W
+    offset = c[..., 0].real / W
+    return freq, amp, offset
+
+
+def latent_wave(phase, freq, amp, offset, t):
+    """ẑ(t) = A sin(2π(f t + φ)) + b: parameters (…, M), time axis t (W,) → (…, M, W)."""
+    return amp[..., None] * (TWO_PI * (freq[..., None] * t + phase[..., None])).sin() + offset[..., None]
+
+
+def manifold(phase, amp):
+    """The phase manifold P (…, 2M): (A_m sin 2πφ_m, A_m cos 2πφ_m) per channel, interleaved.
+    numpy arrays in, numpy out (for `PaeNumpy` results); torch tensors in, tensors out."""
+    if isinstance(phase, np.ndarray):
+        a = TWO_PI * phase
+        return np.stack((amp * np.sin(a), amp * np.cos(a)), axis=-1).reshape(*phase.shape[:-1], -1)
+    import torch
+
+    a = TWO_PI * phase
+    return torch.stack((amp * a.sin(), amp * a.cos()), dim=-1).flatten(-2)
+
+
+def propagate(params: Mapping[str, torch.Tensor], i, dt: float) -> dict[str, torch.Tensor]:
+    """FLD step: φ ← (φ + i f Δt) mod 1; f, A, b unchanged. ``i`` a number (shapes stay (B, M)) or a 1-D
+    tensor of N step counts (every output then (B, N, M))."""
+    import torch
+
+    phase, freq, amp, offset = (params[k] for k in ("phase", "freq", "amp", "offset"))
+    i = torch.as_tensor(i, dtype=phase.dtype)
+    if i.ndim == 1:
+        phase, freq, amp, offset = (v[:, None, :] for v in (phase, freq, amp, offset))
+        i = i[None, :, None]
+        shape = (phase.shape[0], i.shape[1], phase.shape[2])
+        freq, amp, offset = (v.expand(shape) for v in (freq, amp, offset))
+    return {"phase": torch.remainder(phase + i * freq * dt, 1.0), "freq": freq, "amp": amp, "offset": offset}
+
+
+@functools.cache
+def _pae_class():
+    """The torch ``PAE`` class (see its docstring); defined on first use to keep torch lazy."""
+    import torch
+    from torch import nn
+    from torch.nn import functional as F
+
+    class PAE(nn.Module):
+        """The periodic autoencoder (module docstring); arguments as in `PaeConfig`, held in ``config``.
+
+        ``encode(x)``: raw windows (B, J, W) in rad → dict of ``phase``, ``freq``, ``amp``, ``offset``
+        (each (B, M)) and the latent ``z`` (B, M, W). ``decode(phase, freq, amp, offset)`` → (B, J, W)
+        in rad (``decode_normalised``: in normalised units). ``forward(x)`` → (decode(encode(x)), params).
+        """
+
+        def __init__(self, n_joints: int, window: int, n_phases: int = 5, hidden: int = 32, kernel: int = 25,
+                     rate_hz: float = 100.0, joints: Sequence[str] | None = None):
+            super().__init__()
+            cfg = PaeConfig(n_joints, window, n_phases, hidden, kernel, rate_hz,
+                            None if joints is None else tuple(joints))
+            self.config = cfg
+            J, W, M, H, K = cfg.n_joints, cfg.window, cfg.n_phases, cfg.hidden, cfg.kernel
+            self.enc1 = nn.Conv1d(J, H, K, padding=K // 2)
+            self.enc2 = nn.Conv1d(H, M, K, padding=K // 2)
+            bound = 1.0 / math.sqrt(W)                     # nn.Linear's default init, per channel
+            self.phase_weight = nn.Parameter(torch.empty(M, W, 2).uniform_(-bound, bound))
+            self.phase_bias = nn.Parameter(torch.empty(M, 2).uniform_(-bound, bound))
+            self.dec1 = nn.Conv1d(M, H, K, padding=K // 2)
+            self.dec2 = nn.Conv1d(H, J, K, padding=K // 2)
+            self.register_buffer("mean", torch.zeros(J))
+            self.register_buffer("std", torch.ones(J))
+            self.register_buffer("t", torch.as_tensor(window_time(W, cfg.rate_hz), dtype=torch.float32),
+                                 persistent=False)
+
+        def set_stats(self, mean, std) -> None:
+            """Copy the per-joint normalisation statistics in (array-likes of shape (J,))."""
+            self.mean.copy_(torch.as_tensor(np.asarray(mean), dtype=self.mean.dtype))
+            self.std.copy_(torch.as_tensor(np.asarray(std), dtype=self.std.dtype))
+
+        def normalise(self, x: torch.Tensor) -> torch.Tensor:
+            return (x - self.mean[:, None]) / self.std[:, None]
+
+        def denormalise(self, xn: torch.Tensor) -> torch.Tensor:
+            return xn * self.std[:, None] + self.mean[:, None]
+
+        def latent(self, x: torch.Tensor) -> torch.Tensor:
+            """Raw windows (B, J, W) → latent curves z (B, M, W)."""
+            return self.enc2(F.elu(self.enc1(self.normalise(x))))
+
+        def phase_of(self, z: torch.Tensor) -> torch.Tensor:
+            """The phase layer: latent (B, M, W) → φ (B, M) in [0, 1)."""
+            s = torch.einsum("bmw,mwk->bmk", z, self.phase_weight) + self.phase_bias
+            return torch.remainder(torch.atan2(s[..., 1], s[..., 0]) / TWO_PI, 1.0)
+
+        def encode(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+            z = self.latent(x)
+            freq, amp, offset = fft_params(z, self.config.rate_hz)
+            return {"phase": self.phase_of(z), "freq": freq, "amp": amp, "offset": offset, "z": z}
+
+        def decode_normalised(self, phase, freq, amp, offset) -> torch.Tensor:
+            zhat = latent_wave(phase, freq, amp, offset, self.t.to(phase.dtype))
+            return self.dec2(F.elu(self.dec1(zhat)))
+
+        def decode(self, phase, freq, amp, offset) -> torch.Tensor:
+            return self.denormalise(self.decode_normalised(phase, freq, amp, offset))
+
+        def forward(self, x: torch.Tensor):
+            params = self.encode(x)
+            return self.decode(params["phase"], params["freq"], params["amp"], params["offset"]), params
+
+    return PAE
+
+
+def __getattr__(name: str):
+    """``PAE`` is built on first access, so importing this module does not import torch."""
+    if name == "PAE":
+        return _pae_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def model_from_config(cfg: PaeConfig):
+    """A freshly initialised `PAE` for ``cfg`` (draws from torch's global RNG, like any nn.Module)."""
+    return _pae_class()(cfg.n_joints, cfg.window, cfg.n_phases, cfg.hidden, cfg.kernel, cfg.rate_hz, cfg.joints)
+
+
+def recon_loss(model, x: torch.Tensor) -> torch.Tensor:
+    """Reconstruction loss: MSE between decoded and input windows (B, J, W), in normalised units."""
+    import torch
+
+    p = model.encode(x)
+    y = model.decode_normalised(p["phase"], p["freq"], p["amp"], p["offset"])
+    return torch.nn.functional.mse_loss(y, model.normalise(x))
+
+
+def fld_terms(model, seq: torch.Tensor, dt: float) -> torch.Tensor:
+    """L_i for i = 0 … N (a (N+1,) tensor): seq (B, N+1, J, W) raw windows, window i ``i·Δt`` after
+    window 0; window 0 is encoded, propagated i steps and decoded, compared in normalised units."""
+    import torch
+
+    B, n1, J, W = seq.shape
+    p = propagate(model.encode(seq[:, 0]), torch.arange(n1), dt)              # each (B, N+1, M)
+    flat = [p[k].reshape(B * n1, -1) for k in ("phase", "freq", "amp", "offset")]
+    y = model.decode_normalised(*flat).reshape(B, n1, J, W)
+    target = (seq - model.mean[:, None]) / model.std[:, None]
+    return (y - target).square().mean(dim=(0, 2, 3))
+
+
+def fld_loss(model, seq: torch.Tensor, alpha: float, dt: float) -> torch.Tensor:
+    """L_FLD = Σ_{i=0}^{N} α^i L_i (`fld_terms`); not divided by Σ α^i, as in the paper."""
+    import torch
+
+    terms = fld_terms(model, seq, dt)
+    return (alpha ** torch.arange(terms.shape[0], dtype=terms.dtype) * terms).sum()
+
+
+def predict(model, x: torch.Tensor, n: int, dt: float) -> torch.Tensor:
+    """The n windows after x (B, J, W) by FLD, (B, n, J, W) in rad; window i (1-based) is x shifted
+    i·Δt later, so ``predict(...)[:, i − 1, :, -1]`` is the joint angles i·Δt after x's last frame."""
+    import torch
+
+    B, J, W = x.shape
+    p = propagate(model.encode(x), torch.arange(1, n + 1), dt)
+    flat = [p[k].reshape(B * n, -1) for k in ("phase", "freq", "amp", "offset")]
+    return model.decode(*flat).reshape(B, n, J, W)
+
+
+def predict_frames(model, x: torch.Tensor, n: int, dt: float, frame: int = -1) -> torch.Tensor:
+    """The joint angles i·Δt after x's last frame, i = 1 … n, by FLD: (B, n, J) in rad.
+
+    ``frame`` -1 (the paper's reading): the last frame of predicted window i, i.e. ``predict(...)[..., -1]``.
+    Another frame c (0 … W−1, or negative from the end): window 0 is propagated by i·Δt plus the
+    (W−1−c)/rate that frame c lags the last one, and frame c is read. The decoder's convolutions see zero
+    padding near the window's ends, so an inner frame (c ≈ W/2) is decoded better; the latent waves are
+    held constant over (W−1−c)/rate longer.
+    """
+    import torch
+
+    B, J, W = x.shape
+    c = frame % W
+    i = torch.arange(1, n + 1, dtype=torch.float64) + (W - 1 - c) / (model.config.rate_hz * dt)
+    p = propagate(model.encode(x), i, dt)
+    flat = [p[k].reshape(B * n, -1) for k in ("phase", "freq", "amp", "offset")]
+    return model.decode(*flat).reshape(B, n, J, W)[..., c]
+
+
+def torch_to_arrays(model) -> dict[str, np.ndarray]:
+    """The model's persistent state (parameters, ``mean``, ``std``) as float32 arrays, by state-dict key."""
+    return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in model.state_dict().items()}
+
+
+def arrays_to_torch(cfg: PaeConfig, arrays: Mapping[str, np.ndarray], where: str = "PAE"):
+    """A `PAE` for ``cfg`` holding ``arrays``; PhaseError (one line) if they do not fit."""
+    import torch
+
+    check_arrays(cfg, arrays, where)
+    with torch.random.fork_rng(devices=[]):  # construction draws init weights; keep the global RNG as is
+        model = model_from_config(cfg)
+    model.load_state_dict({k: torch.as_tensor(np.asarray(arrays[k], dtype=np.float32)) for k in cfg.shapes()})
+    return model.eval()
+
+
+def check_arrays(cfg: PaeConfig, arrays: Mapping[str, np.ndarray], where: str) -> None:
+    """PhaseError (one line starting with ``where``) unless ``arrays`` holds exactly the arrays of ``cfg``
+    with the right shapes, a float dtype, finite values and positive standard deviations."""
+    shapes = cfg.shapes()
+    extra = sorted(set(arrays) - set(shapes))
+    if extra:
+        raise PhaseError(f"{where}: unexpected array {extra[0]!r}; not a PAE of this config")
+    for key, shape in shapes.items():
+        if key not in arrays:
+            raise PhaseError(f"{where}: lacks array {key!r}")
+        a = np.asarray(arrays[key])
+        if a.shape != shape:
+            raise PhaseError(f"{where}: array {key!r} has shape {a.shape}, the config needs {shape}")
+        if a.dtype.kind != "f":
+            raise PhaseError(f"{where}: array {key!r} has dtype {a.dtype}, not a float type")
+        if not np.all(np.isfinite(a)):
+            raise PhaseError(f"{where}: array {key!r} holds non-finite values")
+    if not np.all(np.asarray(arrays["std"]) > 0):
+        raise PhaseError(f"{where}: array 'std' holds a non-positive standard deviation")
+
+
+# --------------------------------------------------------------------------------------------- numpy
+
+
+class PaeNumpy:
+    """The PAE encoder in numpy, equal to the torch model within float rounding (≤ 1e-5; the phase
+    compared on the circle, where 0.999999 and 0.000001 are neighbours).
+
+    ``encode(window)``: one window (J, W) in rad → dict of ``phase``, ``freq``, ``amp``, ``offset``, each
+    (M,) float64. The convolutions compute in ``dtype`` (float32 default, as the weights), the FFT
+    stage in float64 (M·W values; its power sums are where float32 loses most). Each convolution is one matrix
+    product over an im2col matrix: the padded input, time-major (W+K−1, C), viewed as (W, K, C) with
+    strides (row, row, item) and flattened to (W, K·C); the torch weight (O, C, K) becomes (K·C, O).
+    """
+
+    def __init__(self, cfg: PaeConfig, arrays: Mapping[str, np.ndarray], dtype=np.float32):
+        if np.dtype(dtype) not in (np.float32, np.float64):
+            raise ParameterError(f"PaeNumpy computes in float32 or float64, not {np.dtype(dtype)}")
+        check_arrays(cfg, arrays, "PAE")
+        self.config, self.dtype = cfg, np.dtype(dtype)
+        a = {k: np.asarray(v, dtype=self.dtype) for k, v in arrays.items()}
+        W, K = cfg.window, cfg.kernel
+        self._mean, self._inv_std = a["mean"], (1.0 / a["std"]).astype(self.dtype)
+        self._w1 = np.ascontiguousarray(a["enc1.weight"].transpose(2, 1, 0).reshape(-1, cfg.hidden))
+        self._b1 = a["enc1.bias"]
+        self._w2 = np.ascontiguousarray(a["enc2.weight"].transpose(2, 1, 0).reshape(-1, cfg.n_phases))
+        self._b2 = a["enc2.bias"]
+        self._wp, self._bp = np.ascontiguousarray(a["phase_weight"]), a["phase_bias"]
+        self._fk = np.arange(1, W // 2 + 1) * (cfg.rate_hz / W)
+        self._pad = K // 2
+
+    def _conv(self, x: np.ndarray, w: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """'Same' Conv1d of time-major x (W, C) → (W, O)."""
+        W, C = x.shape
+        K = self.config.kernel
+        buf = np.zeros((W + K - 1, C), dtype=self.dtype)
+        buf[self._pad:self._pad + W] = x
+        s0, s1 = buf.strides
+        cols = np.lib.stride_tricks.as_strided(buf, (W, K, C), (s0, s0, s1)).reshape(W, K * C)
+        y = cols @ w
+        y += b
+        return y
+
+    def encode(self, window) -> dict[str, np.ndarray]:
+        cfg = self.config
+        x = np.asarray(window, dtype=self.dtype)
+        if x.shape != (cfg.n_joints, cfg.window):
+            raise PhaseError(f"PAE window has shape {x.shape}, the model takes ({cfg.n_joints}, {cfg.window}) "
+                             "(joints × frames)")
+        if not np.isfinite(x).all():
+            j, k = np.argwhere(~np.isfinite(x))[0]
+            raise PhaseError(f"PAE window holds a non-finite value ({x[j, k]}) at joint {j}, frame {k}")
+        h = self._conv((x.T - self._mean) * self._inv_std, self._w1, self._b1)
+        neg = np.minimum(h, 0)
+        np.expm1(neg, out=neg)
+        np.maximum(h, 0, out=h)
+        h += neg                                            # ELU
+        z = self._conv(h, self._w2, self._b2)               # (W, M)
+        c = np.fft.rfft(z.astype(np.float64), axis=0)       # the power sums lose most in float32
+        p = c[1:].real ** 2 + c[1:].imag ** 2
+        total = p.sum(axis=0)
+        freq = (self._fk @ p) / (total + EPS)
+        amp = 2.0 * np.sqrt(total + EPS) / cfg.window
+        offset = c[0].real / cfg.window
+        s = np.matmul(z.T[:, None, :], self._wp)[:, 0] + self._bp        # (M, 2)
+        phase = np.mod(np.arctan2(s[:, 1], s[:, 0], dtype=np.float64) / TWO_PI, 1.0)
+        return {"phase": phase, "freq": freq, "amp": amp, "offset": offset}
+
+
+# --------------------------------------------------------------------------------------- weights file
+
+
+def save_pae(path: str | Path, model, meta: Mapping[str, Any] | None = None) -> Path:
+    """Write ``model`` to one ``.npz`` atomically: its state-dict arrays (float32) and ``__meta__``::
+
+        {"model": "felis-pae", "schema": 1, "config": {n_joints, window, n_phases, hidden, kernel,
+         rate_hz, joints}, "params": P, ...meta}
+
+    ``meta`` (JSON-serialisable: e.g. the training config, history, data description) may not use the
+    keys "model", "schema", "config". The arrays are checked first, so a bad model is never written.
+    """
+    from felis.files import write_atomic
+    from felis.learning.ik_net import _jsonable
+
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise PhaseError(f"{path}: a PAE weights file must end in .npz")
+    meta = dict(meta or {})
+    clash = [k for k in RESERVED_META if k in meta]
+    if clash:
+        raise ParameterError(f"PAE metadata may not set the reserved key(s) {', '.join(clash)}")
+    cfg: PaeConfig = model.config
+    arrays = torch_to_arrays(model)
+    check_arrays(cfg, arrays, f"{path}: model")
+    doc = {"model": MODEL_ID, "schema": SCHEMA, "config": cfg.to_json(), "params": cfg.param_count, **meta}
+    try:
+        arrays[META_KEY] = np.array(json.dumps(doc, allow_nan=False, default=_jsonable))
+    except (TypeError, ValueError) as e:
+        raise ParameterError(f"PAE metadata is not JSON-serialisable: {e}") from None
+    return write_atomic(path, lambda f: np.savez(f, **arrays), "PAE weights", PhaseError)
+
+
+def read_pae(path: str | Path, expect_joints: int | Sequence[str] | None = None
+             ) -> tuple[PaeConfig, dict[str, np.ndarray], dict[str, Any]]:
+    """(config, float32 arrays, metadata) of a file written by `save_pae`. ``expect_joints``: a joint
+    count, or the joint names in order (the file must then store the same names). Every problem is a
+    one-line PhaseError naming the file: missing, not an npz, corrupt, no or bad metadata, another
+    model or schema, a bad config, a missing or misshapen array, non-finite values, other joints."""
+    from felis.files import read_npz
+
+    path = Path(path)
+    data = read_npz(path, "PAE weights", PhaseError)
+    if META_KEY not in data:
+        raise PhaseError(f"{path}: no {META_KEY!r} metadata; not a felis PAE weights file")
+    raw = data.pop(META_KEY)
+    try:
+        doc = json.loads(str(raw)) if raw.dtype.kind == "U" and raw.shape == () else None
+    except ValueError as e:
+        raise PhaseError(f"{path}: {META_KEY!r} metadata is not valid JSON ({e})") from None
+    if not isinstance(doc, dict):
+        raise PhaseError(f"{path}: {META_KEY!r} metadata is not a JSON object")
+    if doc.get("model") != MODEL_ID:
+        raise PhaseError(f"{path}: model id {doc.get('model')!r} is not {MODEL_ID!r}; not a PAE weights file")
+    if doc.get("schema") != SCHEMA:
+        raise PhaseError(f"{path}: PAE schema {doc.get('schema')!r} is not supported (felis reads {SCHEMA})")
+    try:
+        cfg = PaeConfig.from_json(doc.get("config"))
+    except ParameterError as e:
+        raise PhaseError(f"{path}: bad config: {e}") from None
+    if expect_joints is not None:
+        _check_joints(path, cfg, expect_joints)
+    check_arrays(cfg, data, str(path))
+    return cfg, {k: data[k].astype(np.float32) for k in cfg.shapes()}, doc
+
+
+def _check_joints(path: Path, cfg: PaeConfig, expect: int | Sequence[str]) -> None:
+    if isinstance(expect, int | np.integer):
+        if cfg.n_joints != expect:
+            raise PhaseError(f"{path}: PAE takes {cfg.n_joints} joints, expected {int(expect)}")
+        return
+    names = [str(n) for n in expect]
+    if cfg.n_joints != len(names):
+        raise PhaseError(f"{path}: PAE takes {cfg.n_joints} joints, expected {len(names)} ({', '.join(names)})")
+    if cfg.joints is not None and list(cfg.joints) != names:
+        i = next(i for i, (a, b) in enumerate(zip(cfg.joints, names, strict=True)) if a != b)
+        raise PhaseError(f"{path}: PAE joint {i} is {cfg.joints[i]!r}, expected {names[i]!r}")
+
+
+def load_pae(path: str | Path, expect_joints: int | Sequence[str] | None = None):
+    """(torch `PAE` in eval mode, metadata) from a file written by `save_pae`; checks as `read_pae`."""
+    cfg, arrays, doc = read_pae(path, expect_joints)
+    return arrays_to_torch(cfg, arrays, str(path)), doc
+
+
+def load_pae_numpy(path: str | Path, expect_joints: int | Sequence[str] | None = None,
+                   dtype=np.float32) -> tuple[PaeNumpy, dict[str, Any]]:
+    """(`PaeNumpy`, metadata) from a file written by `save_pae`, without importing torch."""
+    cfg, arrays, doc = read_pae(path, expect_joints)
+    return PaeNumpy(cfg, arrays, dtype), doc
