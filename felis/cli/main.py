@@ -371,15 +371,16 @@ def build_parser() -> argparse.ArgumentParser:
     __import__("felis.cli.sysid", fromlist=["register"]).register(sub, _Parser)  # felis sysid
     __import__("felis.cli.phase", fromlist=["register"]).register(sub, _Parser)  # felis phase record
 
-    train = sub.add_parser("train", help="train learned controllers: ik, balance")
+    train = sub.add_parser("train", help="train learned controllers: ik, balance, landing, phase")
     trainsub = train.add_subparsers(dest="train_command", metavar="WHAT", parser_class=_Parser)
     train.set_defaults(func=lambda a: _missing(train))
-    evl = sub.add_parser("eval", help="evaluate learned controllers: ik, balance, landing")
+    evl = sub.add_parser("eval", help="evaluate learned controllers: ik, balance, landing, phase")
     evalsub = evl.add_subparsers(dest="eval_command", metavar="WHAT", parser_class=_Parser)
     evl.set_defaults(func=lambda a: _missing(evl))
     __import__("felis.cli.ik", fromlist=["register"]).register(trainsub, evalsub, _Parser, sub)  # train/eval ik
     __import__("felis.cli.balance", fromlist=["register"]).register(trainsub, evalsub, _Parser)  # train/eval balance
     __import__("felis.cli.landing", fromlist=["register"]).register(trainsub, evalsub, _Parser)  # eval landing
+    __import__("felis.cli.phase", fromlist=["register_learning"]).register_learning(trainsub, evalsub, _Parser)
 
     sim = sub.add_parser("sim", help="simulation: drop, render, view")
     simsub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", parser_class=_Parser)
