@@ -9,10 +9,13 @@ Per tick, from the HAL state, in a world-aligned frame (z up):
   description, geometry of the model), the CoM taken relative to the feet on the ground, and v by
   differencing that relative position over one tick (the stance feet do not move, so this is the
   CoM's velocity over the ground; no gyro and no integration drift).
-* **Base of support (BoS).** The convex hull of the feet in contact: touch sensors where fitted,
-  and any foot within `FOOT_DOWN_M` of the ground (the lowest foot): a push jolts contacts off for a
-  tick, and a foot that just unloaded still bounds where the CoP can go. While a gait runs, the feet
-  it has lifted count too, where they will land: carried along with the body, p + v·t_touchdown.
+* **Base of support (BoS).** ``support="feet"`` (default): the convex hull of every foot's ground
+  projection. A knee-less leg leaves the ground only because the body tips, and its foot comes back
+  down where it is when the body turns back; a tip-over turns about the edge of the feet that stay down,
+  and ξ leaves this hull over that same edge. ``support="down"``: the hull of the feet in contact (touch
+  sensors where fitted, and any foot within `FOOT_DOWN_M` of the lowest: a push jolts contacts off for
+  a tick). While a gait runs, the feet it has lifted count where they will land: carried along with the
+  body, p + v·t_touchdown.
 * **Extrapolated CoM** ξ = x + v/ω0 with ω0 = √(g/l), l the CoM's height above the stance feet (eq. 1).
 * **Margin of stability** b: the signed distance from ξ to the BoS edge, positive inside; for a
   two-foot line or one foot (no area) it is minus the distance to that line or point.
@@ -22,20 +25,26 @@ Per tick, from the HAL state, in a world-aligned frame (z up):
   stop the motion); ``unbalanced`` (CoM < CoP < XCoM < BoS: the CoP cannot, the feet can);
   ``falling`` (XCoM outside the BoS); ``unknown`` (a non-finite state or no orientation: never
   "balanced" on bad data).
-* **Alarm with hysteresis**: raised after the margin has stayed below −`on_m` for `on_ticks` ticks,
-  cleared after it has stayed above `off_m` for `off_ticks` ticks. The alarm predicts a fall.
+* **Alarm with hysteresis**: raised after the margin has stayed below −`on_m` for `on_ticks` ticks
+  (standing), or, while a gait runs, for `gait_ticks` ticks over which it still fell by ≥ `diverge_ms`
+  (after a push ξ sits outside on a plateau until a swinging foot lands; in a fall it runs away, for
+  the LIP ḃ = ω0·b); raised at once when the lowest point other than the feet is within `clear_m` of
+  the ground (a collapse: the rear sags onto the floor with ξ on the BoS edge; `Truth.low`, or the body
+  model's collision points); cleared after the margin has stayed above `off_m` for `off_ticks` ticks.
+  The alarm predicts a fall.
 * **Warning**: the margin is below `warn_m` (ξ within that distance of the edge, or beyond it). This is
   when a protective reaction should start: reacting at the warning instead of the alarm saves about
   twice as many falls (docs/balance.md), and a needless crouch costs nothing.
 
 The gait gate: ``monitor.gait`` is a callable t → gait (any object with ``stepping`` and ``swing``,
 e.g. `felis.controllers.stepping.Gait`) or None. The stepping controller feeds it from its own clock;
-a learned phase estimator can feed it later. With two feet down during a trot the BoS is the line
-between them and ξ is off it all the time: without the gate every step would raise an alarm. With the
-gate the swinging feet are part of the BoS (above), and the alarm needs `gait_ticks` ticks past the
-threshold instead of `on_ticks`: a foot landing a little off shifts the BoS for a tick or two.
+the learned phase estimator (`felis.learning.phase_estimator`) can feed it instead. With the BoS of the
+feet down, two feet down during a trot make the BoS the line between them and ξ is off it all the time:
+without the gate every step would raise an alarm; with it the swinging feet are part of the BoS. With
+every foot in the BoS the gate is what keeps a pushed trot quiet: the alarm needs `gait_ticks`
+diverging ticks (above) instead of `on_ticks`.
 
-Cost: about 20 µs per tick with the simulator's truth, about 70 µs when estimating from the body model
+Cost: about 20 µs per tick with the simulator's truth, about 50 µs when estimating from the body model
 (``bench/balance_monitor.py``).
 """
 
@@ -161,8 +170,10 @@ class BalanceMonitor:
     Args:
         body: the robot's `BodyModel` (foot radius, and the CoM estimate when the state has no truth).
         on_m / on_ticks / off_m / off_ticks: the alarm's hysteresis (m, ticks).
-        gait_ticks: ticks below −on_m needed while a gait runs (the gait gate; landing feet shift the
-            BoS, so a brief excursion is normal there).
+        gait_ticks / diverge_ms: while a gait runs, ticks below −on_m needed, with the margin falling by
+            at least diverge_ms (m/s) over them (the gait gate).
+        clear_m: a body part other than the feet this close to the ground (m) raises the alarm at once.
+        support: "feet" (every foot) or "down" (the feet down) make the BoS (module doc).
         warn_m: the margin (m) below which the assessment carries a warning (time to react).
         gait: callable t → gait or None (the gait gate), replaceable at any time.
         use_truth: use `State.truth` when present (simulation); False forces the hardware estimate.

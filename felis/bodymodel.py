@@ -85,12 +85,15 @@ class BodyModel:
             while x > 0:
                 ancestors[b, x] = 1.0
                 x = self.parent[x]
-        extra = dict(_basis=basis, _buf=buf, _factors=factors, _ancestors=ancestors, _n_j=n_j,
+        extra = dict(_basis9=np.ascontiguousarray(basis.reshape(n_j, 3, 9)), _rot9=np.zeros((n_j, 1, 9)),
+                     _buf=buf, _factors=factors, _ancestors=ancestors, _n_j=n_j,
                      _factor_cols=[np.ascontiguousarray(factors[:, i]) for i in range(depth)],
                      _pos_col=self.pos[:, :, None].copy(), _coef=np.zeros((n_j, 3)),
                      _parent=np.where(self.parent < 0, 0, self.parent), _total=float(self.mass.sum()),
-                     _w=self.mass / self.mass.sum(), _imu_rot_t=self.imu_rot.T.copy(),
-                     _imu_turned=not np.allclose(self.imu_rot, np.eye(3)))
+                     _w=self.mass / self.mass.sum(),
+                     _wc=(self.mass[:, None] * self.com / self.mass.sum()).ravel(), _imu_rot_t=self.imu_rot.T.copy(),
+                     _imu_turned=not np.allclose(self.imu_rot, np.eye(3)),
+                     _low_M=low_matrix(self.low_body, self.low_point, n_b), _low_v=np.zeros((n_b, 4)))
         for k, v in extra.items():  # frozen dataclass: precomputed pieces of the forward pass
             object.__setattr__(self, k, v)
 
@@ -109,7 +112,8 @@ class BodyModel:
         np.sin(q, out=coef[:, 1])
         np.subtract(1.0, coef[:, 0], out=coef[:, 2])
         buf = self._buf
-        buf[:self._n_j] = np.einsum("nk,nkij->nij", coef, self._basis)
+        np.matmul(coef[:, None, :], self._basis9, out=self._rot9)  # Σ_k coef_k · basis_k, as one matmul
+        buf[:self._n_j] = self._rot9.reshape(-1, 3, 3)
         cols = self._factor_cols
         P = buf[cols[0]]
         for col in cols[1:]:
@@ -118,7 +122,7 @@ class BodyModel:
         offsets = (R[self._parent] @ self._pos_col)[:, :, 0]
         offsets[0] = 0.0
         p = self._ancestors @ offsets
-        com = self._w @ p + np.einsum("n,nij,nj->i", self._w, R, self.com)
+        com = self._w @ p + R.transpose(1, 0, 2).reshape(3, -1) @ self._wc  # Σ w_b (p_b + R_b c_b)
         return p, R, com
 
     def com_and_feet(self, q: np.ndarray, imu_quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,10 +137,24 @@ class BodyModel:
             root_rot = root_rot @ self._imu_rot_t
         p, R, com = self.forward(np.asarray(q, dtype=float), root_rot)
         low = math.nan
-        if self.low_body.size:  # (R_b · point)_z is the dot product of R_b's last row with the point
-            b = self.low_body
-            low = float(np.min(p[b, 2] + np.einsum("pj,pj->p", R[b, 2], self.low_point) - self.low_radius))
+        if self.low_body.size:  # z of each point: R_b[2] · point + p_b,z (`low_matrix`), less its radius
+            v = self._low_v
+            v[:, :3] = R[:, 2]
+            v[:, 3] = p[:, 2]
+            z = self._low_M @ v.ravel()
+            z -= self.low_radius
+            low = float(z.min())
         return com, p[self.feet], low
+
+
+def low_matrix(body: np.ndarray, point: np.ndarray, n_bodies: int) -> np.ndarray:
+    """M (P, 4·n_bodies) with z = M · v the heights of P points fixed in their bodies, where row b of
+    v (n_bodies, 4) is (the last row of R_b, z of p_b): z_i = R_b[2] · point_i + p_b,z. One small matrix
+    product instead of gathering the bodies' rotations per point."""
+    M = np.zeros((len(body), n_bodies, 4))
+    M[np.arange(len(body)), body, :3] = point
+    M[np.arange(len(body)), body, 3] = 1.0
+    return M.reshape(len(body), -1)
 
 
 def quat_matrix(q: np.ndarray) -> np.ndarray:

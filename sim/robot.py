@@ -23,6 +23,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from felis.bodymodel import low_matrix
 from felis.errors import FelisError, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State, Truth
 from felis.servos import servo_model
@@ -258,7 +259,9 @@ class MujocoRobot(RobotBase):
             self._feet = np.array([mujoco.mj_name2id(m, O.mjOBJ_BODY, f) for f in sens.contacts])
             feet = set(self._feet.tolist())
             robot = {b for b in range(m.nbody) if m.body_rootid[b] == m.body_rootid[self._truth_root]}
-            self._low = collision_points(m, robot - feet)
+            lb, lp, self._low_r = collision_points(m, robot - feet)
+            self._low_M = low_matrix(lb, lp, m.nbody) if lb.size else None
+            self._low_v = np.zeros((m.nbody, 4))
 
     # ------------------------------------------------------------------ torque
     def _set_torque(self, mask: np.ndarray) -> None:
@@ -303,10 +306,14 @@ class MujocoRobot(RobotBase):
         if self._truth_root is not None:
             mujoco.mj_subtreeVel(self.model, d)
             b = self._truth_root
-            lb, lp, lr = self._low
             low = math.nan
-            if lb.size:  # z of the lowest point: p_z + (R · point)_z − r
-                low = float(np.min(d.xpos[lb, 2] + np.einsum("pj,pj->p", d.xmat[lb, 6:9], lp) - lr))
+            if self._low_M is not None:  # z of the lowest point: R_b[2] · point + p_b,z − r (`low_matrix`)
+                v = self._low_v
+                v[:, :3] = d.xmat[:, 6:9]
+                v[:, 3] = d.xpos[:, 2]
+                z = self._low_M @ v.ravel()
+                z -= self._low_r
+                low = float(z.min())
             truth = Truth(com=d.subtree_com[b].copy(), com_vel=d.subtree_linvel[b].copy(),
                           feet=d.xpos[self._feet], foot_force=sd[self._touch], low=low)
         return State(t=float(d.time), q=q, dq=dq, effort=effort, imu=imu, contacts=contacts,
