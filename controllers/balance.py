@@ -286,16 +286,28 @@ class BalanceMonitor:
         prev, self._prev = self._prev, (t, com, feet)
         if prev is None or t <= prev[0]:
             return [0.0, 0.0, 0.0]
-        idx = [i for i, s in enumerate(stance) if s] or list(range(len(feet)))
-        k, dt = len(idx), t - prev[0]
-        out = []
-        for ax in range(3):
-            moved = sum(feet[i][ax] - prev[2][i][ax] for i in idx) / k
-            if feet_only:
-                out.append(moved / dt)
-            else:
-                out.append((com[ax] - prev[1][ax] - moved) / dt)
-        return out
+        before = prev[2]
+        mx = my = mz = 0.0
+        k = 0
+        for i, s in enumerate(stance):
+            if s:
+                p, q = feet[i], before[i]
+                mx += p[0] - q[0]
+                my += p[1] - q[1]
+                mz += p[2] - q[2]
+                k += 1
+        if k == 0:  # no foot known down: all of them
+            for p, q in zip(feet, before, strict=True):
+                mx += p[0] - q[0]
+                my += p[1] - q[1]
+                mz += p[2] - q[2]
+            k = len(feet)
+        dt = t - prev[0]
+        mx, my, mz = mx / k, my / k, mz / k
+        if feet_only:
+            return [mx / dt, my / dt, mz / dt]
+        c0 = prev[1]
+        return [(com[0] - c0[0] - mx) / dt, (com[1] - c0[1] - my) / dt, (com[2] - c0[2] - mz) / dt]
 
     @staticmethod
     def _classify(vel, xi, cop, b: float) -> str:
