@@ -31,10 +31,37 @@ def _step_in_place(frequency_hz: float = 2.0, lift: float = 0.5) -> Controller:
     return SteppingController(frequency_hz=frequency_hz, lift=lift)
 
 
-def _balance(base: str = "stand", reaction: str = "none", body=None, selector=None) -> Controller:
+GATES = ("clock", "phase", "none")
+
+
+class _Observed:
+    """A controller with loop-side observers fed each tick's state before it runs (the phase estimator
+    that its balance monitor's gait gate reads)."""
+
+    def __init__(self, controller, *observers):
+        self.controller, self.observers = controller, observers
+        self.name = getattr(controller, "name", type(controller).__name__)
+
+    def reset(self, spec, state) -> None:
+        for o in self.observers:
+            o.reset(spec, state)
+        self.controller.reset(spec, state)
+
+    def __call__(self, state):
+        for o in self.observers:
+            o(state)
+        return self.controller(state)
+
+    def __getattr__(self, name):  # alarm_t, strategy, assessment … of the wrapped controller
+        return getattr(self.controller, name)
+
+
+def _balance(base: str = "stand", reaction: str = "none", body=None, selector=None, gate: str = "clock") -> Controller:
     """A base controller (stand, step-in-place) guarded by the XCoM balance monitor and a protective
     reaction (none, brace, crouch, step, or selector: the shipped strategy selector; ``selector`` a
-    selector file). ``body`` is the robot's `felis.bodymodel.BodyModel`; the CLI passes it in."""
+    selector file). ``body`` is the robot's `felis.bodymodel.BodyModel`; the CLI passes it in. ``gate``
+    feeds the monitor's gait gate: ``clock`` the base's own gait clock, ``phase`` the learned phase
+    estimator (`felis.learning.phase_estimator`, shipped weights) reading the joints, ``none`` nothing."""
     from felis.controllers.balance import BalanceMonitor
     from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController
 
@@ -50,7 +77,19 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
         react = reaction
     else:
         raise ParameterError(f"balance: unknown reaction {reaction!r}; known: {', '.join(REACTIONS)}, selector")
-    return ReactiveController(make_controller(base), BalanceMonitor(body), react)
+    if gate not in GATES:
+        raise ParameterError(f"balance: unknown gate {gate!r}; known: {', '.join(GATES)}")
+    monitor = BalanceMonitor(body)
+    if gate == "none":
+        monitor.gait = lambda t: None  # not the base's clock either
+    ctl = ReactiveController(make_controller(base), monitor, react)
+    if gate == "phase":
+        from felis.learning.phase_estimator import PhaseEstimator
+
+        est = PhaseEstimator()
+        monitor.gait = est.gait
+        return _Observed(ctl, est)
+    return ctl
 
 
 def _landing(policy=None, drop_height: float | None = None) -> Controller:

@@ -9,7 +9,9 @@ x̂_j = (x_j − μ_j) / σ_j with per-joint statistics of the training data (bu
 The paper's windows are de-meaned per window and not scaled; here the mean pose is information the
 offset b should carry, and joints of very different ranges are put on one scale.
 
-Encoder. z = Conv1d(H→M, K)(ELU(Conv1d(J→H, K)(x̂))) ∈ R^{M×W}, "same" zero padding (K odd). The paper
+Encoder. z = Conv1d(H→M, K)(ELU(Conv1d(J→H, K)(x̂))) ∈ R^{M×W}, "same" padding (K odd) that repeats the
+edge frames: a still window (a standing robot) then gives a constant latent and amplitude A = 0, where zero
+padding would make the window's ends look like motion (0.12 of the stepping amplitude when standing). The paper
 follows each convolution with batch normalisation; there is none here, so training and inference
 compute the same function and `PaeNumpy` is exact (the input standardisation does that job). The
 paper's kernel spans the whole window; the default K = 25 (0.25 s at 100 Hz, half a 2 Hz stride) costs
@@ -53,7 +55,7 @@ encoded; L_i = MSE(dec(φ_0 + i f Δt, f, A, b), S_i) (normalised units) and L_F
 ending at now + i·step, so its last frame is the prediction of the joint angles i·step frames ahead;
 the N-step trajectory prediction is the last frame of each predicted window (`predict(...)[..., -1]`,
 `predict_frames` with ``frame=-1``), as in the paper. The decoder's last frames are its weakest (its
-convolutions see zero padding there), so `predict_frames` can also read an inner frame c of a window
+convolutions see only the repeated edge frame beyond it), so `predict_frames` can also read an inner frame c of a window
 propagated (W−1−c)/rate further, which predicts the same instant while holding f, A, b constant
 longer; `felis.learning.phase_train.evaluate_phase` reports both. Which wins depends on the data: on a
 tiny net (H = 8) the centre read was 7× better; on the default net trained on a gait with a drifting
@@ -232,13 +234,13 @@ def _pae_class():
                             None if joints is None else tuple(joints))
             self.config = cfg
             J, W, M, H, K = cfg.n_joints, cfg.window, cfg.n_phases, cfg.hidden, cfg.kernel
-            self.enc1 = nn.Conv1d(J, H, K, padding=K // 2)
-            self.enc2 = nn.Conv1d(H, M, K, padding=K // 2)
+            self.enc1 = nn.Conv1d(J, H, K, padding=K // 2, padding_mode="replicate")
+            self.enc2 = nn.Conv1d(H, M, K, padding=K // 2, padding_mode="replicate")
             bound = 1.0 / math.sqrt(W)                     # nn.Linear's default init, per channel
             self.phase_weight = nn.Parameter(torch.empty(M, W, 2).uniform_(-bound, bound))
             self.phase_bias = nn.Parameter(torch.empty(M, 2).uniform_(-bound, bound))
-            self.dec1 = nn.Conv1d(M, H, K, padding=K // 2)
-            self.dec2 = nn.Conv1d(H, J, K, padding=K // 2)
+            self.dec1 = nn.Conv1d(M, H, K, padding=K // 2, padding_mode="replicate")
+            self.dec2 = nn.Conv1d(H, J, K, padding=K // 2, padding_mode="replicate")
             self.register_buffer("mean", torch.zeros(J))
             self.register_buffer("std", torch.ones(J))
             self.register_buffer("t", torch.as_tensor(window_time(W, cfg.rate_hz), dtype=torch.float32),
@@ -341,8 +343,8 @@ def predict_frames(model, x: torch.Tensor, n: int, dt: float, frame: int = -1) -
 
     ``frame`` -1 (the paper's reading): the last frame of predicted window i, i.e. ``predict(...)[..., -1]``.
     Another frame c (0 … W−1, or negative from the end): window 0 is propagated by i·Δt plus the
-    (W−1−c)/rate that frame c lags the last one, and frame c is read. The decoder's convolutions see zero
-    padding near the window's ends, so an inner frame (c ≈ W/2) is decoded better; the latent waves are
+    (W−1−c)/rate that frame c lags the last one, and frame c is read. The decoder's convolutions see
+    repeated edge frames near the window's ends, so an inner frame (c ≈ W/2) is decoded better; the latent waves are
     held constant over (W−1−c)/rate longer.
     """
     import torch
@@ -428,6 +430,8 @@ class PaeNumpy:
         K = self.config.kernel
         buf = np.zeros((W + K - 1, C), dtype=self.dtype)
         buf[self._pad:self._pad + W] = x
+        buf[:self._pad] = x[0]  # replicate padding, as the torch model's
+        buf[self._pad + W:] = x[-1]
         s0, s1 = buf.strides
         cols = np.lib.stride_tricks.as_strided(buf, (W, K, C), (s0, s0, s1)).reshape(W, K * C)
         y = cols @ w

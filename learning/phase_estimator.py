@@ -8,9 +8,12 @@ centre phase carried forward half a window, as FLD propagates it:
 
     φ_c(now) = φ_c + f_c · (W − 1) / (2 · rate)   (mod 1)
 
-**The dominant channel and the stepping threshold** (`calibrate`, stored in the weights' metadata). On
-the training recordings, the channel with the largest median amplitude over the frames whose whole window
-is stepping is the gait's channel (it carries the phase); the stepping threshold is the amplitude halfway
+**The gait channel and the stepping threshold** (`calibrate`, stored in the weights' metadata). On the
+training recordings, over the frames whose whole window is stepping: the *strong* channels have a median
+amplitude of at least half the largest; among them, those whose median frequency is within 25 % of the
+lowest are the fundamental (a trot's two diagonal steps look alike, so some channels turn at twice the
+cycle frequency: harmonics sit at ≥ 2×), and the strongest of those is the gait channel. No labels: only
+the model's own outputs and which frames step. The stepping threshold is the amplitude halfway
 (geometrically) between that channel's median amplitude over the frames whose whole window is standing
 and its 5th percentile while stepping. Geometric, because a standing window's amplitude is near zero.
 
@@ -80,22 +83,27 @@ def calibrate(pae: PaeNumpy, trajectories: Sequence[np.ndarray], stepping: Seque
     """The gait channel and the stepping threshold (module doc) from trajectories (T, J) and their
     per-frame stepping flags (T,)."""
     W = pae.config.window
-    amps_step, amps_stand = [], []
+    amps_step, amps_stand, freqs = [], [], []
     for q, s in zip(trajectories, stepping, strict=True):
-        amp = phase_track(pae, q)["amp"]
+        tr = phase_track(pae, q)
         s = np.asarray(s, dtype=bool)
-        amps_step.append(amp[_window_all(s, W)])
-        amps_stand.append(amp[_window_all(~s, W)])
+        amps_step.append(tr["amp"][_window_all(s, W)])
+        freqs.append(tr["freq"][_window_all(s, W)])
+        amps_stand.append(tr["amp"][_window_all(~s, W)])
     step, stand = np.concatenate(amps_step), np.concatenate(amps_stand)
     if len(step) == 0 or len(stand) == 0:
         raise PhaseError("calibration needs whole windows of stepping and of standing")
-    channel = int(np.argmax(np.median(step, axis=0)))
+    amp_med, f_med = np.median(step, axis=0), np.median(np.concatenate(freqs), axis=0)
+    strong = amp_med >= 0.5 * amp_med.max()
+    fundamental = strong & (f_med <= 1.25 * f_med[strong].min())
+    channel = int(np.argmax(np.where(fundamental, amp_med, -np.inf)))
     lo, hi = float(np.median(stand[:, channel])), float(np.percentile(step[:, channel], 5))
     if not hi > lo:
         raise PhaseError(f"the gait channel's amplitude does not separate stepping ({hi:.3g}) from standing "
                          f"({lo:.3g})")
     return {"channel": channel, "stepping_amp": math.sqrt(max(lo, 1e-9) * hi),
-            "amp_standing": lo, "amp_stepping_p5": hi, "amp_stepping_median": float(np.median(step[:, channel]))}
+            "amp_standing": lo, "amp_stepping_p5": hi, "amp_stepping_median": float(amp_med[channel]),
+            "channel_amp_median": amp_med.round(4).tolist(), "channel_freq_median_hz": f_med.round(4).tolist()}
 
 
 class PhaseEstimator:

@@ -14,7 +14,8 @@ from one window after its start (the window then holds that gait only) to its en
   fraction of its median while stepping;
 * continuity: the largest phase step between consecutive frames, |Δφ| on the circle minus the step the
   frequency predicts (f_c·Δt), in cycles, over the frames within one window of a gait change, against the
-  same over steady frames: a continuous phase shows no jump at the changes.
+  same over steady frames: a continuous phase shows no jump at the changes. Only frames where the gait
+  channel's amplitude is above the stepping threshold count: standing, A ≈ 0 and the phase is undefined.
 
 **Gate** (`gate_comparison`): pushes on the simulated cat with three balance monitors watching the same
 run: gated by the stepping controller's own clock (the reference), by the online phase estimator
@@ -53,8 +54,9 @@ def _circ(d: np.ndarray) -> np.ndarray:
     return (d + 0.5) % 1.0 - 0.5
 
 
-def phase_metrics(pae: PaeNumpy, channel: int, recs: Sequence[GaitRecording]) -> dict:
-    """The module doc's phase figures over ``recs`` (each at the model's rate, with contacts and clock)."""
+def phase_metrics(pae: PaeNumpy, channel: int, recs: Sequence[GaitRecording], threshold: float = 0.0) -> dict:
+    """The module doc's phase figures over ``recs`` (each at the model's rate, with contacts and clock);
+    ``threshold``: the stepping amplitude (a phase is only defined, and judged for continuity, above it)."""
     W, rate = pae.config.window, pae.config.rate_hz
     segs, stand_amp, step_amp, jumps_change, jumps_steady = [], [], [], [], []
     for rec in recs:
@@ -69,7 +71,7 @@ def phase_metrics(pae: PaeNumpy, channel: int, recs: Sequence[GaitRecording]) ->
         key = np.where(rec.stepping, rec.frequency_hz * 1000 + rec.amplitude, -1.0)
         for e in np.flatnonzero(np.diff(key) != 0) + 1:
             change[max(0, e - W):e + W] = True
-        ok = np.isfinite(d)
+        ok = np.isfinite(d) & (a[1:] > threshold) & (a[:-1] > threshold)
         jumps_change.append(d[ok & change[1:]])
         jumps_steady.append(d[ok & ~change[1:]])
         for a0, b0 in _segments(rec):

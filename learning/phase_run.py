@@ -60,7 +60,7 @@ def train_phase_run(cfg: PhaseTrainConfig, out: Path, workdir: Path, *, data: Pa
     save_pae(tmp, model)
     pae, _ = load_pae_numpy(tmp)
     cal = calibrate(pae, [r.q for r in train], [r.stepping for r in train])
-    phase = phase_metrics(pae, cal["channel"], held)
+    phase = phase_metrics(pae, cal["channel"], held, cal["stepping_amp"])
     pred = evaluate_phase(model, [r.q for r in held], cfg.fld_steps)
     results = {
         "config": asdict(cfg), "data": str(data) if data else f"recorded now (scale {scale:g})",

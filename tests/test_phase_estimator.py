@@ -122,16 +122,12 @@ def test_phase_metrics_structure(tiny, gait):
 
 
 # ------------------------------------------------------------------------------- the shipped weights
-shipped = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason="no shipped phase weights")
-
-
 def test_shipped_weights_exist():
     """`felis train phase` made them; they are part of the repository."""
     assert DEFAULT_WEIGHTS.is_file()
     assert DEFAULT_WEIGHTS.stat().st_size < 200_000
 
 
-@shipped
 def test_shipped_estimator_tells_stepping_from_standing_in_the_loop(spec):
     """On MuJoCo at 100 Hz: standing, then trotting at 1.8 Hz (a frequency the training never held): the
     estimator says not stepping while standing, stepping at the trot's frequency (or a multiple) within
@@ -164,7 +160,6 @@ def test_shipped_estimator_tells_stepping_from_standing_in_the_loop(spec):
     assert not any(r[3] for r in rows)
 
 
-@shipped
 def test_gate_comparison_runs_the_three_monitors_on_the_same_pushes():
     pushes = [Push("upper_body", 90.0, 0.9, 1.7, "step"), Push("lower_body", 0.0, 0.3, 1.8, "step"),
               Push("upper_body", 270.0, 1.0, 0.6, "stand")]
@@ -228,3 +223,20 @@ def test_felis_eval_phase_bad_input_is_one_line(tmp_path, capsys, tiny, args, me
     rc = main(["eval", "phase", *args])
     err = capsys.readouterr().err.strip()
     assert rc != 0 and message in err and "\n" not in err
+
+
+def test_felis_run_balance_with_the_phase_gate(tmp_path, capsys):
+    """`felis run balance --gate phase`: the shipped estimator feeds the monitor of a guarded trot."""
+    import json
+
+    from felis.cli.main import main
+
+    rc = main(["run", "balance", "--robot", "cat", "--base", "step-in-place", "--gate", "phase", "--duration", "3",
+               "--json"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["run"]["controller"] == "step-in-place+balance" and out["run"]["ok"]
+    assert out["controller"]["alarm_t"] is None  # a quiet trot
+    rc = main(["run", "stand", "--robot", "cat", "--gate", "phase"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "belong to the balance controller" in err

@@ -228,9 +228,10 @@ def cmd_run(args) -> int:
     elif args.trajectory is not None or args.weights is not None:
         raise ParameterError("--trajectory and --weights belong to the arm-track controller")
     if args.controller == "balance":
-        options = {"base": args.base or "stand", "reaction": args.reaction or "none", "selector": args.selector}
-    elif args.base is not None or args.reaction is not None or args.selector is not None:
-        raise ParameterError("--base, --reaction and --selector belong to the balance controller")
+        options = {"base": args.base or "stand", "reaction": args.reaction or "none", "selector": args.selector,
+                   "gate": args.gate or "clock"}
+    elif args.base is not None or args.reaction is not None or args.selector is not None or args.gate is not None:
+        raise ParameterError("--base, --reaction, --selector and --gate belong to the balance controller")
     duration = 3.0 if duration is None else duration
     res = _episode(args, robot=args.robot, controller=args.controller, duration=duration, log=args.log,
                    clock="wall" if backend == "dxl" else args.clock, rate_hz=args.rate, backend=backend,
@@ -352,6 +353,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="balance: the controller the monitor guards (default stand)")
     run.add_argument("--reaction", choices=["none", "brace", "crouch", "step", "selector"],
                      help="balance: what the cat does when the monitor warns (default none)")
+    run.add_argument("--gate", choices=["clock", "phase", "none"],
+                     help="balance: what feeds the monitor's gait gate: the base's own clock (default), the learned "
+                     "phase estimator (shipped weights) or nothing")
     run.add_argument("--selector", type=Path, metavar="FILE",
                      help="balance: a selector file for --reaction selector (default: the shipped one)")
     run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")

@@ -240,7 +240,7 @@ def cmd_eval_phase(args) -> int:
     model, _ = load_pae(weights)
     steps = int(meta.get("training", {}).get("config", {}).get("fld_steps", 10))  # the horizon it was trained for
     res = {"weights": str(weights), "gait_channel": cal["channel"],
-           "heldout_phase": phase_metrics(pae, cal["channel"], held),
+           "heldout_phase": phase_metrics(pae, cal["channel"], held, cal["stepping_amp"]),
            "heldout_prediction": evaluate_phase(model, [r.q for r in held], steps)}
     if pushes is not None:
         quiet = args.json or not sys.stderr.isatty()
