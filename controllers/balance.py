@@ -30,7 +30,8 @@ Per tick, from the HAL state, in a world-aligned frame (z up):
   (after a push ξ sits outside on a plateau until a swinging foot lands; in a fall it runs away, for
   the LIP ḃ = ω0·b); raised at once when the lowest point other than the feet is within `clear_m` of
   the ground (a collapse: the rear sags onto the floor with ξ on the BoS edge; `Truth.low`, or the body
-  model's collision points); cleared after the margin has stayed above `off_m` for `off_ticks` ticks.
+  model's collision points); cleared after the margin has stayed above `off_m` for `off_ticks` ticks
+  with the body clear of the ground.
   The alarm predicts a fall.
 * **Warning**: the margin is below `warn_m` (ξ within that distance of the edge, or beyond it). This is
   when a protective reaction should start: reacting at the warning instead of the alarm saves about
@@ -324,14 +325,15 @@ class BalanceMonitor:
     def _hysteresis(self, t: float, b: float, stepping: bool, grounded: bool) -> None:
         """Raise: `on_ticks` ticks below −on_m standing; while a gait runs, `gait_ticks` ticks and the
         margin still falling over them (by ≥ diverge_ms); at once when the body nears the ground.
-        Clear: `off_ticks` ticks above off_m."""
+        Clear: `off_ticks` ticks above off_m with the body off the ground (a robot lying on its side may
+        have ξ inside its feet's hull)."""
         run = self._run
         if b < -self.on_m:
             self._above = 0
             run.append((t, b))
         else:
             run.clear()
-            self._above = self._above + 1 if b > self.off_m else 0
+            self._above = self._above + 1 if b > self.off_m and not grounded else 0  # down on the floor: held
         need = self.gait_ticks if stepping else self.on_ticks
         if len(run) > need:
             del run[:-need]

@@ -211,6 +211,11 @@ def test_clearance_raises_the_alarm(body):
     a = mon.assess(state(0.01, 0.003))
     assert a.clearance == pytest.approx(0.003) and a.alarm
     assert not BalanceMonitor(body, clear_m=0.0).assess(state(0.0, 0.003)).alarm
+    # lying on the floor with ξ inside the feet's hull: the alarm holds; it clears once the body is up
+    for k in range(15):
+        assert mon.assess(state(0.02 + 0.01 * k, 0.001)).alarm
+    got = [mon.assess(state(0.2 + 0.01 * k, 0.010)).alarm for k in range(12)]
+    assert got == [True] * 9 + [False] * 3
 
 
 def test_gait_gate_projects_swing_feet(body):
