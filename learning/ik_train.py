@@ -21,26 +21,18 @@ pickle) replaced atomically, so a run killed at any instant leaves the previous 
 
 from __future__ import annotations
 
-import json
 import time
 import zlib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, TypedDict
+from typing import TypedDict
 
 import numpy as np
 
 from felis.errors import ParameterError, WeightsError
-from felis.learning.ik_net import (
-    META_KEY,
-    NetSpec,
-    check_arrays,
-    model_from_spec,
-    read_meta,
-    read_npz,
-    torch_to_arrays,
-)
+from felis.learning.ik_net import NetSpec, check_arrays, model_from_spec, torch_to_arrays
+from felis.learning.torch_checkpoint import load_checkpoint, save_checkpoint
 
 CHECKPOINT_ID = "felis-ik-checkpoint"
 CHECKPOINT_SCHEMA = 1
@@ -278,81 +270,14 @@ def _evaluate(model, xs, ys) -> float:
 
 
 def _save_checkpoint(path: Path, run_id: dict, epoch: int, model, opt, gen, hist: History, best: dict) -> None:
-    """model/<key>, best/<key>, opt/<i>/<state>, rng, history/<list> arrays and a JSON ``__meta__``."""
-    from felis.files import write_atomic
-
-    arrays: dict[str, np.ndarray] = {f"model/{k}": v for k, v in torch_to_arrays(model).items()}
-    arrays.update({f"best/{k}": v.detach().cpu().numpy().copy() for k, v in best.items()})
-    state = opt.state_dict()["state"]
-    for i, st in state.items():
-        for name, v in st.items():
-            arrays[f"opt/{i}/{name}"] = v.detach().cpu().numpy().copy()
-    arrays["rng"] = gen.get_state().numpy().copy()
-    for name in HISTORY_LISTS:
-        arrays[f"history/{name}"] = np.asarray(hist[name], dtype=np.float64)
-    meta = {"model": CHECKPOINT_ID, "schema": CHECKPOINT_SCHEMA, "epoch": epoch, "best_epoch": hist["best_epoch"],
-            "best_val": hist["best_val"], "opt_state": {str(i): sorted(st) for i, st in state.items()}, **run_id}
-    arrays[META_KEY] = np.array(json.dumps(meta))
-    write_atomic(path, lambda f: np.savez(f, **arrays), "training checkpoint", WeightsError)
+    save_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id, epoch, torch_to_arrays(model), opt, gen, hist,
+                    HISTORY_LISTS, best, "training checkpoint", WeightsError)
 
 
 def _load_checkpoint(path: Path, run_id: dict, spec: NetSpec, model, opt, gen):
-    """Restore model, optimiser, generator from ``path``; returns (next epoch, history, best state).
-    WeightsError (one line) for a corrupt checkpoint or one from another run."""
-    import torch
-
-    data = read_npz(path, "checkpoint")
-    meta = read_meta(data, path, "training checkpoint")
-    if meta.get("model") != CHECKPOINT_ID or meta.get("schema") != CHECKPOINT_SCHEMA:
-        raise WeightsError(f"{path}: not an IK training checkpoint (model {meta.get('model')!r}, schema "
-                           f"{meta.get('schema')!r})")
-    for key, what in (("spec", "net spec"), ("config", "training config"), ("data", "training data")):
-        if meta.get(key) != run_id[key]:
-            diff = _difference(meta.get(key), run_id[key])
-            raise WeightsError(f"{path}: checkpoint was made with another {what} ({diff}); start without "
-                               "resuming or use the same settings")
-    try:
-        model_arrays = {k[6:]: v for k, v in data.items() if k.startswith("model/")}
-        best_arrays = {k[5:]: v for k, v in data.items() if k.startswith("best/")}
-        check_arrays(spec, model_arrays, f"{path}: checkpoint model")
-        check_arrays(spec, best_arrays, f"{path}: checkpoint best weights")
-        epoch = int(meta["epoch"])
-        hist = new_history()
-        for n in HISTORY_LISTS:
-            hist[n] = data[f"history/{n}"].astype(float).tolist()
-        hist["best_epoch"], hist["best_val"] = int(meta["best_epoch"]), float(meta["best_val"])
-        if not (len(hist["train"]) == len(hist["val"]) == len(hist["lr"]) == epoch >= 1):
-            raise WeightsError(f"{path}: checkpoint history does not match its epoch {epoch}")
-        opt_state = {}
-        for i, names in meta["opt_state"].items():
-            opt_state[int(i)] = {n: torch.from_numpy(np.array(data[f"opt/{i}/{n}"])) for n in names}
-        rng = data["rng"]
-    except KeyError as e:
-        raise WeightsError(f"{path}: checkpoint lacks {e.args[0]!r}") from None
-    except (TypeError, ValueError) as e:
-        raise WeightsError(f"{path}: corrupt checkpoint metadata ({e})") from None
-    if rng.dtype != np.uint8 or rng.ndim != 1:
-        raise WeightsError(f"{path}: checkpoint generator state is not a byte array")
-    model.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in model_arrays.items()})
-    sd = opt.state_dict()
-    try:
-        opt.load_state_dict({"state": opt_state, "param_groups": sd["param_groups"]})
-        gen.set_state(torch.from_numpy(np.array(rng)))
-    except (RuntimeError, ValueError, KeyError) as e:
-        raise WeightsError(f"{path}: checkpoint optimiser or generator state does not fit: {e}") from None
-    for i, p in enumerate(model.parameters()):
-        st = opt.state.get(p, {})
-        for n in ("exp_avg", "exp_avg_sq"):
-            if n not in st or st[n].shape != p.shape or not bool(torch.isfinite(st[n]).all()):
-                raise WeightsError(f"{path}: checkpoint optimiser state {i}/{n} is missing, misshapen or non-finite")
-    best = {k: torch.from_numpy(np.array(v)) for k, v in best_arrays.items()}
-    return epoch, hist, best
-
-
-def _difference(old: Any, new: Any) -> str:
-    """A short description of what differs between two JSON values (first differing key)."""
-    if isinstance(old, dict) and isinstance(new, dict):
-        for k in sorted(set(old) | set(new)):
-            if old.get(k) != new.get(k):
-                return f"{k}: {old.get(k)!r} there, {new.get(k)!r} now"
-    return f"{old!r} there, {new!r} now"
+    """Restore model, optimiser, generator from ``path`` (`felis.learning.torch_checkpoint`); returns (next
+    epoch, history, best state). WeightsError (one line) for a corrupt checkpoint or one from another run."""
+    return load_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id,
+                           (("spec", "net spec"), ("config", "training config"), ("data", "training data")),
+                           lambda arrays, where: check_arrays(spec, arrays, where), model, opt, gen, new_history,
+                           HISTORY_LISTS, "IK training checkpoint", WeightsError)

@@ -34,7 +34,6 @@ frequency, and unlike the power-weighted FFT frequency it is not pulled up by ha
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -45,9 +44,8 @@ from typing import Any, TypedDict
 import numpy as np
 
 from felis.errors import ParameterError, PhaseError
-from felis.learning.ik_train import _difference, _fingerprint, _stats, _TorchSettings
+from felis.learning.ik_train import _fingerprint, _stats, _TorchSettings
 from felis.learning.pae import (
-    META_KEY,
     PaeConfig,
     check_arrays,
     fld_terms,
@@ -55,6 +53,7 @@ from felis.learning.pae import (
     predict_frames,
     torch_to_arrays,
 )
+from felis.learning.torch_checkpoint import load_checkpoint, save_checkpoint
 
 CHECKPOINT_ID = "felis-pae-checkpoint"
 CHECKPOINT_SCHEMA = 1
@@ -321,70 +320,18 @@ def _losses(model, segs, cfg: PhaseTrainConfig, weights) -> tuple[float, float]:
 
 
 def _save_checkpoint(path: Path, run_id: dict, epoch: int, model, opt, gen, hist: PhaseHistory, best: dict) -> None:
-    """model/<key>, best/<key>, opt/<i>/<state>, rng, history/<list> arrays and a JSON ``__meta__``."""
-    from felis.files import write_atomic
-
-    arrays: dict[str, np.ndarray] = {f"model/{k}": v for k, v in torch_to_arrays(model).items()}
-    arrays.update({f"best/{k}": v.detach().cpu().numpy().copy() for k, v in best.items()})
-    state = opt.state_dict()["state"]
-    for i, st in state.items():
-        for name, v in st.items():
-            arrays[f"opt/{i}/{name}"] = v.detach().cpu().numpy().copy()
-    arrays["rng"] = gen.get_state().numpy().copy()
-    for name in HISTORY_LISTS:
-        arrays[f"history/{name}"] = np.asarray(hist[name], dtype=np.float64)
-    meta = {"model": CHECKPOINT_ID, "schema": CHECKPOINT_SCHEMA, "epoch": epoch, "best_epoch": hist["best_epoch"],
-            "best_val": hist["best_val"], "opt_state": {str(i): sorted(st) for i, st in state.items()}, **run_id}
-    arrays[META_KEY] = np.array(json.dumps(meta))
-    write_atomic(path, lambda f: np.savez(f, **arrays), "PAE training checkpoint", PhaseError)
+    save_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id, epoch, torch_to_arrays(model), opt, gen, hist,
+                    HISTORY_LISTS, best, "PAE training checkpoint", PhaseError)
 
 
 def _load_checkpoint(path: Path, run_id: dict, pcfg: PaeConfig, model, opt, gen):
-    """Restore model, optimiser and generator from ``path``; returns (next epoch, history, best state).
-    PhaseError (one line) for a corrupt checkpoint or one from another run."""
-    import torch
-
-    from felis.files import read_npz
-
-    data = read_npz(path, "PAE training checkpoint", PhaseError)
-    try:
-        meta = json.loads(str(data[META_KEY]))
-    except (KeyError, ValueError):
-        raise PhaseError(f"{path}: no readable {META_KEY!r} metadata; not a PAE training checkpoint") from None
-    if not isinstance(meta, dict) or meta.get("model") != CHECKPOINT_ID or meta.get("schema") != CHECKPOINT_SCHEMA:
-        raise PhaseError(f"{path}: not a PAE training checkpoint")
-    for key, what in (("config", "training config"), ("pae", "model config or joints"), ("data", "training data")):
-        if meta.get(key) != run_id[key]:
-            diff = _difference(meta.get(key), run_id[key])
-            raise PhaseError(f"{path}: checkpoint was made with another {what} ({diff}); start without resuming "
-                             "or use the same settings")
-    try:
-        model_arrays = {k[6:]: v for k, v in data.items() if k.startswith("model/")}
-        best_arrays = {k[5:]: v for k, v in data.items() if k.startswith("best/")}
-        check_arrays(pcfg, model_arrays, f"{path}: checkpoint model")
-        check_arrays(pcfg, best_arrays, f"{path}: checkpoint best weights")
-        epoch = int(meta["epoch"])
-        hist = new_history()
-        for n in HISTORY_LISTS:
-            hist[n] = data[f"history/{n}"].astype(float).tolist()
-        hist["best_epoch"], hist["best_val"] = int(meta["best_epoch"]), float(meta["best_val"])
-        if not all(len(hist[n]) == epoch for n in HISTORY_LISTS) or epoch < 1:
-            raise PhaseError(f"{path}: checkpoint history does not match its epoch {epoch}")
-        opt_state = {int(i): {n: torch.from_numpy(np.array(data[f"opt/{i}/{n}"])) for n in names}
-                     for i, names in meta["opt_state"].items()}
-        rng = data["rng"]
-    except KeyError as e:
-        raise PhaseError(f"{path}: checkpoint lacks {e.args[0]!r}") from None
-    except (TypeError, ValueError, AttributeError) as e:
-        raise PhaseError(f"{path}: corrupt checkpoint metadata ({e})") from None
-    model.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in model_arrays.items()})
-    try:
-        opt.load_state_dict({"state": opt_state, "param_groups": opt.state_dict()["param_groups"]})
-        gen.set_state(torch.from_numpy(np.array(rng, dtype=np.uint8)))
-    except (RuntimeError, ValueError, KeyError) as e:
-        raise PhaseError(f"{path}: checkpoint optimiser or generator state does not fit: {e}") from None
-    best = {k: torch.from_numpy(np.array(v)) for k, v in best_arrays.items()}
-    return epoch, hist, best
+    """Restore model, optimiser and generator from ``path`` (`felis.learning.torch_checkpoint`); returns
+    (next epoch, history, best state). PhaseError (one line) for a corrupt checkpoint or one from another run."""
+    return load_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id,
+                           (("config", "training config"), ("pae", "model config or joints"),
+                            ("data", "training data")),
+                           lambda arrays, where: check_arrays(pcfg, arrays, where), model, opt, gen, new_history,
+                           HISTORY_LISTS, "PAE training checkpoint", PhaseError)
 
 
 # ----------------------------------------------------------------------------------------- evaluation

@@ -314,9 +314,9 @@ def test_corrupt_checkpoint_gives_one_line(tmp_path):
     ckpt.write_bytes(ckpt.read_bytes()[:-200])
     with pytest.raises(WeightsError) as err:
         train_net(x, y, None, None, spec, cfg, checkpoint=ckpt, resume=True)
-    assert "corrupt or truncated checkpoint file" in str(err.value) and "\n" not in str(err.value)
+    assert "corrupt or truncated IK training checkpoint file" in str(err.value) and "\n" not in str(err.value)
     _save_pair(ckpt)                                      # a weights file is not a checkpoint
-    with pytest.raises(WeightsError, match="not an IK training checkpoint"):
+    with pytest.raises(WeightsError, match="is no IK training checkpoint"):
         train_net(x, y, None, None, spec, cfg, checkpoint=ckpt, resume=True)
 
 
