@@ -28,6 +28,7 @@ bench: $(STAMP)
 	$(PY) bench/ik_latency.py
 	$(PY) bench/balance_monitor.py
 	$(PY) bench/dtw_speed.py
+	$(PY) bench/landing_speed.py
 
 # The IK nets' size table and the paper's ablations over 3 seeds (about 35 min on 2 cores).
 ik-study: $(STAMP)

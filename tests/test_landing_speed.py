@@ -1,0 +1,37 @@
+"""Smoke test of ``bench/landing_speed.py``: its two parts on a tiny setup (no timing claims)."""
+
+import importlib.util
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from felis.learning import landing_train as lt
+
+SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "landing_speed.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("landing_speed", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_landing_speed_parts(bench):
+    task, jobs = bench.setup(1)
+    assert task.k == 7 and task.steps == lt.STEPS and len(jobs) == task.k
+    # two orientations, 20 ticks: the same code paths in a few seconds
+    task = replace(task, orientations=task.orientations[:2], heights_m=task.heights_m[:2], steps=20,
+                   sf=task.sf[:2], tf=task.tf[:2])
+    jobs = jobs[:2]
+    one = bench.episode_speed(task, jobs, repeats=1)
+    assert one["anchor_same_physics"] is True  # the bare loop redoes felis's physics bit for bit
+    assert one["episodes_per_batch"] == 2
+    for key in ("bare_mj_step_episodes_per_s", "rollout_episodes_per_s", "job_episodes_per_s", "job_ratio"):
+        assert one[key] > 0
+    pool = bench.pool_speedup(task, jobs, repeats=1)
+    assert pool["identical_results"] is True
+    assert pool["jobs_per_map"] == 2 and pool["speedup"] > 0 and isinstance(pool["met"], bool)
+    assert lt._WORKER is None  # both parts release this process's simulation
