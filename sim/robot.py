@@ -51,14 +51,14 @@ def collision_points(m: mujoco.MjModel, bodies) -> tuple[np.ndarray, np.ndarray,
         if b not in bodies or not (m.geom_contype[g] or m.geom_conaffinity[g]):
             continue
         s, t = m.geom_size[g], int(m.geom_type[g])
-        if t == T.mjGEOM_BOX:
+        if t == int(T.mjGEOM_BOX):
             local = np.array([[x, y, z] for x in (-s[0], s[0]) for y in (-s[1], s[1]) for z in (-s[2], s[2])])
             r = np.zeros(8)
         elif t in (int(T.mjGEOM_CAPSULE), int(T.mjGEOM_CYLINDER)):
             local, r = np.array([[0.0, 0.0, -s[1]], [0.0, 0.0, s[1]]]), np.full(2, s[0])
-        elif t == T.mjGEOM_SPHERE:
+        elif t == int(T.mjGEOM_SPHERE):
             local, r = np.zeros((1, 3)), np.array([s[0]])
-        elif t == T.mjGEOM_PLANE:
+        elif t == int(T.mjGEOM_PLANE):
             continue
         else:
             local, r = np.zeros((1, 3)), np.array([m.geom_rbound[g]])

@@ -211,6 +211,7 @@ def test_felis_train_and_eval_phase_tiny(tmp_path, capsys):
     (["--weights", "{bare}"], "calibration"),
     (["--weights", "{tiny}", "--pushes", "random:-3"], "random"),
     (["--weights", "{tiny}", "--out", "{tmp}/r.txt"], ".json"),
+    (["--weights", "{tiny}", "--data", "{train}", "--pushes", "none"], "no recordings of split 'heldout'"),
 ])
 def test_felis_eval_phase_bad_input_is_one_line(tmp_path, capsys, tiny, args, message):
     from felis.cli.main import main
@@ -219,7 +220,13 @@ def test_felis_eval_phase_bad_input_is_one_line(tmp_path, capsys, tiny, args, me
     model, _ = load_pae(tiny)
     bare = tmp_path / "bare.npz"
     save_pae(bare, model)
-    args = [a.format(tmp=tmp_path, bare=bare, tiny=tiny) for a in args]
+    train = tmp_path / "train.npz"
+    if any("{train}" in a for a in args):  # a gait-data file without held-out recordings
+        from felis.learning.gait_data import save_recordings
+
+        save_recordings(train, [record_sim(((1.0, 0.0, 0.0), (2.5, 2.0, 0.5)), name="t", split="train")],
+                        set_name="train")
+    args = [a.format(tmp=tmp_path, bare=bare, tiny=tiny, train=train) for a in args]
     rc = main(["eval", "phase", *args])
     err = capsys.readouterr().err.strip()
     assert rc != 0 and message in err and "\n" not in err
