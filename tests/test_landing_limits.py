@@ -1,20 +1,13 @@
 """Smoke test of ``bench/landing_limits.py``: one short drop at ×1 and ×4 servo speed (no search)."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "landing_limits.py"
+from conftest import load_bench
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("landing_limits", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("landing_limits")
 
 
 def test_faster_servo_turns_further(bench):

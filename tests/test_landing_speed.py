@@ -1,22 +1,16 @@
 """Smoke test of ``bench/landing_speed.py``: its two parts on a tiny setup (no timing claims)."""
 
-import importlib.util
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
+from conftest import load_bench
 
 from felis.learning import landing_train as lt
-
-SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "landing_speed.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("landing_speed", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("landing_speed")
 
 
 def test_landing_speed_parts(bench):
