@@ -482,6 +482,30 @@ def fitness(heights_mm: Sequence[float] | np.ndarray, up_z: float, smooth: bool 
     return fitness_eq9(heights_mm) * upright_factor(up_z, smooth)
 
 
+def landing_score(air_up_z: float, clean_frac: float, tilt_deg: float | None, waist_ratio: float | None,
+                  landed: bool) -> float:
+    """Our fitness for the issue's `landed` rule (``fitness="landing"`` in training; not the paper's):
+
+        F = (1 + ū_td)/2 + c + clip(cos θ / cos 30°, 0, 1) + clip(w / 0.5, 0, 1) + [landed]   ∈ [0, 5]
+
+    ū_td (``air_up_z``): mean up-axis z of the upper and lower body at touchdown (air righting, −1 upside
+    down … 1 upright); c (``clean_frac``): the share of the 0.5 s window after touchdown before a part other
+    than a foot touched the floor (1: feet only); θ (``tilt_deg``): the upper body's tilt at touchdown +
+    0.5 s; w (``waist_ratio``): the waist height then over its standing height. ``tilt_deg`` or
+    ``waist_ratio`` None (no touchdown, or the run ended before the window did) scores 0 for those terms.
+    Each term is partial credit towards one clause of the rule, so evolution sees progress long before the
+    first landing; eq. 9 rewards a steady high waist, which a cat lying on its splayed legs also has."""
+    vals = [air_up_z, clean_frac] + [v for v in (tilt_deg, waist_ratio) if v is not None]
+    if not all(isinstance(v, int | float) and math.isfinite(v) for v in vals):
+        raise ParameterError(f"landing score inputs must be finite numbers, got {vals}")
+    f = 0.5 * (1.0 + min(1.0, max(-1.0, air_up_z))) + min(1.0, max(0.0, clean_frac))
+    if tilt_deg is not None:
+        f += min(1.0, max(0.0, math.cos(math.radians(tilt_deg)) / UPRIGHT_COS))
+    if waist_ratio is not None:
+        f += min(1.0, max(0.0, waist_ratio / 0.5))
+    return f + (1.0 if landed else 0.0)
+
+
 # ----------------------------------------------------------------------------------------- ranking
 
 RTOL = 1e-3  # keys within this relative difference tie (eq. 10's "f1 = f2")

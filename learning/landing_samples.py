@@ -236,12 +236,12 @@ def circle_waypoints(sign: int, amplitude: float = WAYPOINT_LIMIT, n: int = N_WA
 # ------------------------------------------------------------------------------------------ rollout
 @dataclass
 class Rollout:
-    """One 3 m drop under a policy: what the samples and the trainer need.
+    """One drop under a policy: what the samples and the trainer need.
 
     ``vectors`` (T, J, 3): `MotionRecorder` segment vectors per tick; ``heights_mm`` (T,): waist height
     (eq. 9's Sh); ``up_z`` / ``lower_up_z`` (T,): up-axis z of the upper / lower body per tick;
     ``final_up_z``: the upper body's up-axis z after the last step; ``outcome``: the `LandingOutcome`.
-    T = `STEPS` (a run that diverged is padded with its last tick)."""
+    T = the rollout's ticks (`STEPS` by default; a run that diverged is padded with its last tick)."""
 
     orientation: tuple[float, float, float]
     height_m: float
@@ -275,10 +275,10 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([a, np.repeat(a[-1:], n - len(a), axis=0)])
 
 
-def rollout(sim: Any, orientation: Sequence[float], policy_callable: Any, height_m: float = TRAIN_HEIGHT_M
-            ) -> Rollout:
+def rollout(sim: Any, orientation: Sequence[float], policy_callable: Any, height_m: float = TRAIN_HEIGHT_M,
+            steps: int = STEPS) -> Rollout:
     """Drop the cat of ``sim`` (a `felis.learning.landing_eval.LandingSim`) from ``height_m`` in
-    ``orientation`` (roll, pitch, yaw degrees) for `STEPS` ticks of `DT` under ``policy_callable``: a callable
+    ``orientation`` (roll, pitch, yaw degrees) for ``steps`` ticks of `DT` under ``policy_callable``: a callable
     (it, t) → (12,) joint velocities (a `SpineRule`) or an object with ``velocities(it)`` (an evolved
     behaviour), or a ready `LandingController`. Deterministic for equal inputs."""
     from felis.controllers.landing import LandingController
@@ -301,10 +301,10 @@ def rollout(sim: Any, orientation: Sequence[float], policy_callable: Any, height
         heights.append(1000.0 * float(state.height))
         ups.append((float(d.xmat[upper, 8]), float(d.xmat[lower, 8])))
 
-    out = sim.run(Drop(*o, h), controller, monitors=[monitor], duration=STEPS * DT)
-    u = _pad(np.array(ups, dtype=float).reshape(-1, 2), STEPS)
+    out = sim.run(Drop(*o, h), controller, monitors=[monitor], duration=steps * DT)
+    u = _pad(np.array(ups, dtype=float).reshape(-1, 2), steps)
     final = float(robot.data.xmat[upper, 8]) if out.why != "physics diverged" else float(u[-1, 0])
-    return Rollout(o, h, _pad(recorder.vectors(), STEPS), _pad(np.array(heights, dtype=float), STEPS),
+    return Rollout(o, h, _pad(recorder.vectors(), steps), _pad(np.array(heights, dtype=float), steps),
                    u[:, 0].copy(), u[:, 1].copy(), final, out)
 
 

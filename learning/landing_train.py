@@ -45,6 +45,25 @@ units evolves. Each complex behaviour (`ComplexBehaviour`) is evaluated on every
 `random_unit("compose")`. Success: the best ends upright (and, for the landing count, lands) on every
 orientation.
 
+**One net** (``one_net=True``, §6.6.2's baseline). One population of simple behaviours, each evaluated on
+every training orientation and ranked by eq. 11 like the compose units, for ``generations_simple +
+generations_complex`` generations: the same number of rollouts as simple then complex.
+
+**Landing fitness** (``fitness="landing"``, ours). Eq. 9 rewards a steady, high waist and an upright body
+at the end, not feet-first contact; nets trained on it learn to hit the floor body first and roll back
+up, which the issue's `landed` rule rejects. `landing_nets.landing_score` ∈ [0, 5] gives one point per
+clause of that rule, each with partial credit: the mean up-axis z at touchdown (air righting), the share
+of the 0.5 s window with only feet on the floor, the tilt at its end against 30°, the waist against half
+its standing height, and 1 if it landed. D and S still rank ties (eq. 10).
+
+**General stage** (``generations_general`` > 0, ours). The paper's policy composes behaviours made for 7
+orientations; it never sees the rest of the sphere, and from 3 m none of our 7 orientations can be righted
+at the XL330's speed (docs/landing.md). So a last stage evolves one simple behaviour on new random drops
+every generation (`general_drops`: ``general_drops`` of them, 1 m and 3 m in turn, start tilt at most
+``general_max_tilt_deg``), seeded with one that holds still (`still`: the passive baseline, so the stage
+starts no worse than doing nothing), the best simple behaviour of each orientation, and random ones. It is
+ranked by drops landed first, then mean fitness (`_general_generation`), and its best is the policy.
+
 **Determinism.** All randomness comes from one ``np.random.default_rng(seed)`` in this process, drawn in a
 fixed order; workers only run deterministic rollouts, so results are identical whatever the evaluator
 (inline, any number of processes, Ray). After every generation a checkpoint ``<workdir>/checkpoint.npz``
@@ -52,7 +71,8 @@ fixed order; workers only run deterministic rollouts, so results are identical w
 generator's state (``bit_generator.state`` as JSON) and the curves; ``resume=True`` continues from it and
 gives bit-identical results to an uninterrupted run.
 
-**Outputs.** ``out_path`` (the complex policy, `save_policy`), ``<stem>.results.json`` (config, curves per
+**Outputs.** ``out_path`` (the complex policy, or the one simple behaviour of the one-net or general
+stage, `save_policy`), ``<stem>.results.json`` (config, curves per
 generation, generations to the first success, final per-orientation marks) and ``<stem>.curves.png``.
 """
 
@@ -84,6 +104,7 @@ from felis.learning.landing_nets import (
     crossover_simple,
     eliminate_and_immigrate,
     fitness,
+    landing_score,
     mutate,
     mutate_simple,
     random_simple,
@@ -92,7 +113,7 @@ from felis.learning.landing_nets import (
     rank_simple,
     save_policy,
 )
-from felis.learning.landing_samples import STEPS, load_samples, rollout
+from felis.learning.landing_samples import DT, STEPS, load_samples, rollout
 from felis.learning.motion_features import (
     Pca,
     flatten_features,
@@ -101,15 +122,19 @@ from felis.learning.motion_features import (
     transition_distance,
     transition_features,
 )
+from felis.sim.drops import WINDOW_S
 
 RATE_HZ = 100.0  # §6.4: steps of 1/100 s (`STEPS` = 200 of them)
 DEFAULT_SAMPLES = Path(__file__).parent / "weights" / "landing_samples.json"
 DIVERGED = 1e9  # D and S of a rollout whose physics diverged
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "felis-landing-checkpoint"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 META_KEY = "__meta__"
 RUNTIME_FIELDS = ("workers", "ray_address")  # settings that never change the numbers
+FITNESSES = ("eq9", "landing")
+GENERAL_HEIGHTS_M = (1.0, 3.0)  # the general stage's drops alternate between these heights
+GENERAL_STEPS = 150  # 1.5 s: a 3 m fall (0.78 s) and the 0.5 s the landed rule watches, with room
 
 Progress = Callable[[str, int, int, dict], None]
 
@@ -137,6 +162,14 @@ class TrainConfig:
     (f, D, S) (eq. 10); False ranks by f alone (§6.6.1, experiment 1). ``smooth_upright``: f uses the
     upright ramp instead of the 0/1 test. ``steps``: rollout length in 10 ms ticks (§6.4: 200).
     ``samples``: motion samples file (`landing_samples.load_samples`; "" = `DEFAULT_SAMPLES`).
+    ``fitness``: "eq9" (the paper's eq. 9 × upright, `landing_nets.fitness`) or "landing" (our
+    `landing_nets.landing_score`, partial credit for each clause of the `landed` rule). ``one_net``: instead
+    of simple then complex, one simple behaviour evolves on every training orientation at once for
+    ``generations_simple + generations_complex`` generations, ranked by eq. 11 (§6.6.2's baseline).
+    ``generations_general`` (0 = none): a last stage, ours, that evolves one simple behaviour on
+    ``general_drops`` random drops per generation (new ones each generation, from 1 m and 3 m in turn,
+    start tilt at most ``general_max_tilt_deg``), seeded with the previous stages' simple behaviours and
+    one that holds still (passive); its best is then the policy.
     ``workers``/``ray_address``: where rollouts run (`make_evaluator`); they never change the results.
     """
 
@@ -158,6 +191,11 @@ class TrainConfig:
     smooth_upright: bool = False
     steps: int = STEPS
     samples: str = ""
+    fitness: str = "eq9"
+    one_net: bool = False
+    generations_general: int = 0
+    general_drops: int = 16
+    general_max_tilt_deg: float = 180.0
     workers: int | None = None
     ray_address: str | None = None
 
@@ -192,6 +230,11 @@ class TrainConfig:
         integer("population", 2)
         integer("generations_simple", 1)
         integer("generations_complex", 1)
+        integer("generations_general", 0)
+        integer("general_drops", 1)
+        t = self.general_max_tilt_deg
+        if isinstance(t, bool) or not isinstance(t, int | float) or not 0.0 < t <= 180.0:
+            raise ParameterError(f"training general_max_tilt_deg must be a number in (0, 180], got {t!r}")
         integer("tournament", 1)
         integer("max_hidden", 1)
         integer("pca_dims", 1)
@@ -212,7 +255,9 @@ class TrainConfig:
             raise ParameterError(f"training orientations must be sample indices (integers ≥ 0), got {o!r}")
         if len(set(o)) != len(o):
             raise ParameterError(f"training orientations {list(o)} name a sample twice")
-        for name in ("use_similarity", "smooth_upright"):
+        if self.fitness not in FITNESSES:
+            raise ParameterError(f"training fitness must be one of {', '.join(FITNESSES)}, got {self.fitness!r}")
+        for name in ("use_similarity", "smooth_upright", "one_net"):
             if not isinstance(getattr(self, name), bool):
                 raise ParameterError(f"training {name} must be true or false, got {getattr(self, name)!r}")
         if not isinstance(self.samples, str):
@@ -237,14 +282,15 @@ class TrainConfig:
 @dataclass(frozen=True)
 class Rollout:
     """What one rollout gives the scoring: segment vectors (T, J, 3), waist heights (T,) in mm, the
-    upper body's up-axis z at the end, whether the drop met the `landed` rule; ``complete`` is False when
-    the physics diverged."""
+    upper body's up-axis z at the end, whether the drop met the `landed` rule, its `landing_score`;
+    ``complete`` is False when the physics diverged."""
 
     vectors: np.ndarray
     heights_mm: np.ndarray
     final_up_z: float
     complete: bool = True
     landed: bool = False
+    landing: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -261,6 +307,7 @@ class Task:
     sf: tuple[np.ndarray, ...]
     tf: tuple[np.ndarray, ...]
     robot: str = "cat"
+    fitness: str = "eq9"
 
     @property
     def k(self) -> int:
@@ -283,40 +330,40 @@ def fit_features(samples: Sequence[Any], dims: int) -> tuple[Pca, list[np.ndarra
     return pca, [f[0] for f in feats], [f[1] for f in feats]
 
 
-def score(task: Task, k: int, r: Rollout) -> np.ndarray:
-    """(f, D, S, up_z, landed) of rollout ``r`` on training orientation ``k`` (module doc)."""
+def score(task: Task, k: int | tuple, r: Rollout) -> np.ndarray:
+    """(f, D, S, up_z, landed) of rollout ``r`` on training orientation ``k`` (module doc); ``k`` a drop
+    (roll, pitch, yaw, height) of the general stage: D = S = 0 (no motion sample to compare with)."""
     if not r.complete or len(r.heights_mm) < 2:
         up = float(r.final_up_z) if math.isfinite(r.final_up_z) else -1.0
         return np.array([0.0, DIVERGED, DIVERGED, up, 0.0])
-    f = fitness(r.heights_mm, r.final_up_z, task.smooth_upright)
+    f = r.landing if task.fitness == "landing" else fitness(r.heights_mm, r.final_up_z, task.smooth_upright)
+    if not isinstance(k, int | np.integer):
+        return np.array([f, 0.0, 0.0, r.final_up_z, float(bool(r.landed))])
     sf, tf = sample_features(task.pca, r.vectors)
     return np.array([f, motion_distance(sf, task.sf[k]), transition_distance(tf, task.tf[k]), r.final_up_z,
                      float(bool(r.landed))])
 
 
+def _landing(r: Any) -> float:
+    """`landing_score` of a `landing_samples.Rollout` (its outcome and per-tick up-axes)."""
+    o = r.outcome
+    n = len(r.up_z)
+    if o.touchdown_s is None:
+        i, clean = n - 1, 0.0
+    else:
+        i = min(n - 1, max(0, int(o.touchdown_s / DT)))
+        clean = 1.0 if o.foot_only else min(1.0, float(o.touch_s or 0.0) / WINDOW_S)
+    waist = None if o.waist_m is None else float(o.waist_m) / float(o.standing_waist_m)
+    air = 0.5 * (float(r.up_z[i]) + float(r.lower_up_z[i]))
+    return landing_score(air if math.isfinite(air) else -1.0, clean, o.tilt_deg, waist, bool(o.landed))
+
+
 def _rollout(sim, orientation: Sequence[float], policy, height_m: float, steps: int) -> Rollout:
-    """A rollout of any length: `landing_samples.rollout`'s drop, recording and final up-axis (the upper
-    body's, after the last step), for ``steps`` ticks of 10 ms instead of `STEPS` (short runs for tests
-    and quick experiments; at `STEPS` both give the same numbers)."""
-    from felis.controllers.landing import LandingController
-    from felis.learning.motion_features import MotionRecorder
-    from felis.sim.drops import Drop
-
-    robot = sim.robot
-    rec = MotionRecorder(robot.model)
-    heights: list[float] = []
-
-    def monitor(state, command) -> None:
-        rec.record(robot.data)
-        heights.append(1000.0 * float(state.height))
-
-    roll, pitch, yaw = (float(a) for a in orientation)
-    out = sim.run(Drop(roll, pitch, yaw, float(height_m)), LandingController(policy), monitors=[monitor],
-                  duration=steps / RATE_HZ)
-    if out.why == "physics diverged" or len(heights) != steps:
-        return Rollout(rec.vectors(), np.asarray(heights), float("nan"), complete=False)
-    return Rollout(rec.vectors(), np.asarray(heights), float(robot.data.xmat[robot.root_body, 8]),
-                   landed=bool(out.landed))
+    """A rollout of ``steps`` ticks of 10 ms (`landing_samples.rollout`) as the scoring needs it."""
+    r = rollout(sim, orientation, policy, height_m, steps)
+    if r.outcome.why == "physics diverged":
+        return Rollout(r.vectors, r.heights_mm, float("nan"), complete=False)
+    return Rollout(r.vectors, r.heights_mm, float(r.final_up_z), landed=bool(r.landed), landing=_landing(r))
 
 
 # ---------------------------------------------------------------------------------- worker functions
@@ -342,8 +389,9 @@ def release_worker() -> None:
         _WORKER = None
 
 
-def evaluate_job(job: tuple[SimpleBehaviour | ComplexBehaviour, int]) -> np.ndarray:
-    """One job (behaviour, orientation index k) → (f, D, S, up_z, landed); needs `init_worker` in this process."""
+def evaluate_job(job: tuple[SimpleBehaviour | ComplexBehaviour, int | tuple]) -> np.ndarray:
+    """One job (behaviour, orientation index k, or a general-stage drop (roll, pitch, yaw, height)) →
+    (f, D, S, up_z, landed); needs `init_worker` in this process."""
     if _WORKER is None:
         raise RuntimeError("evaluate_job needs init_worker(task) in this process first")
     sim, task = _WORKER
@@ -351,15 +399,13 @@ def evaluate_job(job: tuple[SimpleBehaviour | ComplexBehaviour, int]) -> np.ndar
     return score(task, k, run_rollout(sim, task, behaviour, k))
 
 
-def run_rollout(sim, task: Task, policy, k: int) -> Rollout:
-    """The rollout of ``policy`` on training orientation ``k`` of ``task``: `landing_samples.rollout` (the
-    samples' own recording) for `STEPS` ticks, `_rollout` for other lengths."""
-    if task.steps != STEPS:
-        return _rollout(sim, task.orientations[k], policy, task.heights_m[k], task.steps)
-    r = rollout(sim, task.orientations[k], policy, task.heights_m[k])
-    if r.outcome.why == "physics diverged":
-        return Rollout(r.vectors, r.heights_mm, float("nan"), complete=False)
-    return Rollout(r.vectors, r.heights_mm, float(r.final_up_z), landed=bool(r.landed))
+def run_rollout(sim, task: Task, policy, k: int | tuple) -> Rollout:
+    """The rollout of ``policy`` on training orientation ``k`` of ``task`` (`landing_samples.rollout`, the
+    samples' own recording, for ``task.steps`` ticks), or on a general-stage drop ``k`` = (roll, pitch,
+    yaw, height) for `GENERAL_STEPS` ticks."""
+    if not isinstance(k, int | np.integer):
+        return _rollout(sim, k[:3], policy, k[3], GENERAL_STEPS)
+    return _rollout(sim, task.orientations[k], policy, task.heights_m[k], task.steps)
 
 
 # ------------------------------------------------------------------------------------------ samples
@@ -400,7 +446,7 @@ def make_task(cfg: TrainConfig, samples: Sequence[Any]) -> tuple[Task, list[int]
     task = Task(orientations=tuple(tuple(float(a) for a in samples[i].orientation) for i in idx),
                 heights_m=tuple(float(samples[i].height_m) for i in idx), steps=cfg.steps,
                 smooth_upright=cfg.smooth_upright, pca=pca, sf=tuple(sfs[i] for i in idx),
-                tf=tuple(tfs[i] for i in idx))
+                tf=tuple(tfs[i] for i in idx), fitness=cfg.fitness)
     return task, idx
 
 
@@ -476,9 +522,10 @@ def _is_success(marks: np.ndarray) -> bool:
 
 @dataclass
 class _State:
-    stage: str  # "simple", "complex" or "done"
+    stage: str  # "simple", "complex", "one" (one-net), "general" or "done"
     generation: int  # generations done in this stage
-    simple: list[list[SimpleBehaviour]]  # per orientation: the population to evaluate next (elites first)
+    simple: list[list[SimpleBehaviour]]  # per orientation: the population to evaluate next (elites first);
+    # in the "one" and "general" stages a single population
     frozen: list[SimpleBehaviour] | None  # the complex stage's simple behaviours
     compose: list[GeneUnit] | None  # the compose population to evaluate next (elites first)
     rng: np.random.Generator
@@ -488,10 +535,12 @@ class _State:
 def _new_history(k: int) -> dict:
     cols = ("best_f", "best_D", "best_S", "best_up_z", "median_f", "median_D", "median_S", "best_success",
             "best_landed", "n_upright", "n_landed")
+    def joint() -> dict:  # a stage whose individuals are scored on several drops (complex, one-net, general)
+        return {"best_score": [], "best_mean_f": [], "best_mean_D": [], "best_mean_S": [], "best_n_success": [],
+                "best_n_landed": [], "median_mean_f": [], "first_success": None, "first_landed": None, "best": []}
+
     return {"simple": [{c: [] for c in cols} | {"first_success": None, "first_landed": None} for _ in range(k)],
-            "complex": {"best_score": [], "best_mean_f": [], "best_mean_D": [], "best_mean_S": [],
-                        "best_n_success": [], "best_n_landed": [], "median_mean_f": [], "first_success": None,
-                        "first_landed": None, "best": []}}
+            "complex": joint(), "general": joint()}
 
 
 def _f(x) -> float:
@@ -666,6 +715,11 @@ def plot_curves(path: Path, results: dict) -> Path:
     g = np.arange(1, len(cx["best_mean_f"]) + 1)
     ax[1, 0].plot(g, cx["best_mean_f"], label="best: mean f")
     ax[1, 0].plot(g, cx["median_mean_f"], label="median: mean f")
+    gx = results.get("general") or {}
+    if gx.get("best_mean_f"):
+        gg = np.arange(1, len(gx["best_mean_f"]) + 1)
+        ax[1, 0].plot(gg, gx["best_mean_f"], label="general stage, best: mean f over its drops")
+        ax[1, 0].plot(gg, gx["median_mean_f"], label="general stage, median")
     ax[1, 0].set(title="complex stage: f over the orientations", xlabel="generation", ylabel="mean f")
     ax[1, 0].legend(fontsize=7)
     ax[1, 1].plot(g, cx["best_n_success"], drawstyle="steps-mid", label="upright at the end, f > 0")
@@ -703,6 +757,7 @@ def _results(cfg: TrainConfig, task: Task, idx: list[int], samples: Sequence[Any
                                          "complex": h["complex"]["first_landed"]},
         "simple": simple,
         "complex": {k: v for k, v in h["complex"].items() if k != "best"},
+        "general": {k: v for k, v in h["general"].items() if k != "best"},
         "final": final,
         "final_success_rate": (sum(r["success"] for r in final) / len(final)) if final else None,
         "final_landed_rate": (sum(r["landed"] for r in final) / len(final)) if final else None,
@@ -714,12 +769,17 @@ def _write_outputs(cfg, task, idx, samples, state, fingerprint, out_path, run) -
     from felis.files import write_atomic
 
     out, res_path, png = output_paths(out_path)
-    policy = ComplexBehaviour(tuple(state.frozen), state.compose[0])
+    if cfg.generations_general or cfg.one_net:  # the population's first member is its last best (an elite)
+        policy = state.simple[0][0]
+    else:
+        policy = ComplexBehaviour(tuple(state.frozen), state.compose[0])
     results = _results(cfg, task, idx, samples, state, fingerprint, run)
     meta = {"trained_by": "felis.learning.landing_train", "seed": cfg.seed, "samples": fingerprint,
             "orientations": [list(o) for o in task.orientations], "heights_m": list(task.heights_m),
-            "steps": cfg.steps, "use_similarity": cfg.use_similarity,
-            "generations": [cfg.generations_simple, cfg.generations_complex], "final": results["final"]}
+            "steps": cfg.steps, "use_similarity": cfg.use_similarity, "fitness": cfg.fitness,
+            "one_net": cfg.one_net, "generations": [cfg.generations_simple, cfg.generations_complex,
+                                                    cfg.generations_general],
+            "final": results["final"]}
     save_policy(out, policy, meta)
     write_atomic(res_path, json.dumps(results, indent=1, allow_nan=False) + "\n", "training results",
                  ParameterError)
@@ -761,8 +821,80 @@ def _complex_generation(state: _State, cfg: TrainConfig, ev: Evaluator, k_n: int
             "landed": hc["best_n_landed"][-1], "orientations": k_n}
 
 
+def start_tilt_deg(roll_deg: float, pitch_deg: float) -> float:
+    """Tilt of the up-axis from vertical for R = Rz(yaw)·Ry(pitch)·Rx(roll): acos(cos roll · cos pitch)."""
+    c = math.cos(math.radians(roll_deg)) * math.cos(math.radians(pitch_deg))
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+def general_drops(cfg: TrainConfig, generation: int) -> list[tuple[float, float, float, float]]:
+    """The drops (roll, pitch, yaw °, height m) of general-stage generation ``generation`` (1-based): roll,
+    pitch and yaw uniform over the full circle as in `random_drops`, from a generator seeded by (seed,
+    generation), keeping those with `start_tilt_deg` ≤ ``general_max_tilt_deg``; heights
+    `GENERAL_HEIGHTS_M` in turn."""
+    rng = np.random.default_rng([cfg.seed, generation])
+    out: list[tuple[float, float, float, float]] = []
+    while len(out) < cfg.general_drops:
+        r, p, y = (float(a) for a in rng.uniform(-180.0, 180.0, size=3))
+        if start_tilt_deg(r, p) <= cfg.general_max_tilt_deg:
+            out.append((r, p, y, GENERAL_HEIGHTS_M[len(out) % len(GENERAL_HEIGHTS_M)]))
+    return out
+
+
+def _general_generation(state: _State, cfg: TrainConfig, ev: Evaluator) -> dict:
+    """Every individual on this generation's drops, ranked lexicographically by (drops landed, mean f):
+    the score is n_landed + mean f / (F_max + 1) (no motion samples here, so no D, S). Landing comes
+    first: ranked by mean f alone, a policy that scores partial credit on every drop (turning in the air,
+    rolling back up after a body-first touch) beat the passive cat's score while landing less often."""
+    pop = state.simple[0]
+    gen = state.generation + 1
+    drops = general_drops(cfg, gen)
+    jobs = [(b, d) for b in pop for d in drops]
+    marks = np.array(ev.map(evaluate_job, jobs), dtype=float).reshape(len(pop), len(drops), 5)
+    f_max = 5.0 if cfg.fitness == "landing" else max(1.0, float(marks[:, :, 0].max()))
+    sc = marks[:, :, 4].sum(axis=1) + marks[:, :, 0].mean(axis=1) / (f_max + 1.0)
+    order = np.lexsort((np.arange(len(pop)), -sc))  # best first; ties: earlier first (elites stay first)
+    hg = state.history["general"]
+    _record_complex(hg, gen, marks, order, sc)
+    state.simple, state.generation = [breed_simple(pop, order, sc, cfg, state.rng)], gen
+    return {"score": hg["best_score"][-1], "landed": hg["best_n_landed"][-1], "orientations": len(drops)}
+
+
+def _one_generation(state: _State, cfg: TrainConfig, ev: Evaluator, k_n: int) -> dict:
+    """One-net baseline (§6.6.2): one population of simple behaviours, each on every training orientation,
+    ranked by eq. 11 like the compose units."""
+    pop = state.simple[0]
+    jobs = [(b, k) for b in pop for k in range(k_n)]
+    marks = np.array(ev.map(evaluate_job, jobs), dtype=float).reshape(len(pop), k_n, 5)
+    order, sc = rank_marks(marks, cfg.use_similarity)
+    gen = state.generation + 1
+    hc = state.history["complex"]
+    _record_complex(hc, gen, marks, order, sc)
+    state.simple, state.generation = [breed_simple(pop, order, sc, cfg, state.rng)], gen
+    return {"score": hc["best_score"][-1], "mean_f": hc["best_mean_f"][-1], "successes": hc["best_n_success"][-1],
+            "landed": hc["best_n_landed"][-1], "orientations": k_n}
+
+
+def still(b: SimpleBehaviour) -> SimpleBehaviour:
+    """``b`` with every output weight and bias 0: it holds the release pose (passive), and mutation
+    starts from there."""
+    return SimpleBehaviour(*(GeneUnit(u.kind, u.inputs, u.hidden, u.W1, np.zeros_like(u.W2), u.scale)
+                             for u in (b.spine, b.tail, b.legs)))
+
+
+def _start_general(state: _State, cfg: TrainConfig, seeds: Sequence[SimpleBehaviour]) -> None:
+    """The general stage's population: a still behaviour, the previous stages' simple behaviours, then
+    random ones."""
+    pop = ([still(random_simple(state.rng, cfg.max_hidden))] + list(seeds))[:cfg.population]
+    pop += [random_simple(state.rng, cfg.max_hidden) for _ in range(cfg.population - len(pop))]
+    state.simple, state.stage, state.generation = [pop], "general", 0
+
+
 def _start(cfg: TrainConfig, k_n: int) -> _State:
     rng = np.random.default_rng(cfg.seed)
+    if cfg.one_net:
+        return _State("one", 0, [[random_simple(rng, cfg.max_hidden) for _ in range(cfg.population)]], None, None,
+                      rng, _new_history(k_n))
     simple = [[random_simple(rng, cfg.max_hidden) for _ in range(cfg.population)] for _ in range(k_n)]
     return _State("simple", 0, simple, None, None, rng, _new_history(k_n))
 
@@ -805,10 +937,26 @@ def train_landing(cfg: TrainConfig, out_path: str | Path, workdir: str | Path, r
                     state.compose = [random_unit("compose", state.rng, cfg.max_hidden) for _ in range(cfg.population)]
                     state.stage, state.generation = "complex", 0
                     info["generation"] = cfg.generations_simple
-            else:
+            elif state.stage == "complex":
                 info = _complex_generation(state, cfg, ev, task.k)
                 stage, total = "complex", cfg.generations_complex
                 if state.generation >= cfg.generations_complex:
+                    state.stage = "done"
+                    info["generation"] = state.generation
+                    if cfg.generations_general:
+                        _start_general(state, cfg, state.frozen)
+            elif state.stage == "one":
+                info = _one_generation(state, cfg, ev, task.k)
+                stage, total = "one-net", cfg.generations_simple + cfg.generations_complex
+                if state.generation >= total:
+                    state.stage = "done"
+                    info["generation"] = state.generation
+                    if cfg.generations_general:
+                        _start_general(state, cfg, state.simple[0])
+            else:
+                info = _general_generation(state, cfg, ev)
+                stage, total = "general", cfg.generations_general
+                if state.generation >= cfg.generations_general:
                     state.stage = "done"
             gen = info.pop("generation", state.generation)
             save_checkpoint(ckpt, state, run_id)

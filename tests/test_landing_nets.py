@@ -365,6 +365,26 @@ def test_fitness_with_upright_term():
     assert L.fitness(h, 0.2, smooth=True) == 0.0 and L.fitness(h, 0.95, smooth=True) == pytest.approx(100.0)
 
 
+def test_landing_score_hand_cases():
+    # a landing: upright at touchdown, feet only, upright and high after 0.5 s → every term full, + 1
+    assert L.landing_score(1.0, 1.0, 0.0, 1.0, True) == pytest.approx(5.0)
+    # upside down at touchdown, body first at once, on its back, flat: nothing
+    assert L.landing_score(-1.0, 0.0, 180.0, 0.0, False) == 0.0
+    # on its side at touchdown (0.5), clean for 0.1 of 0.5 s (0.2), tilt 60° → cos 60 / cos 30, waist at
+    # a quarter of standing → 0.5
+    assert L.landing_score(0.0, 0.2, 60.0, 0.25, False) == pytest.approx(
+        0.5 + 0.2 + math.cos(math.radians(60)) / math.cos(math.radians(30)) + 0.5)
+    # tilt within 30° and waist above half standing are full marks (the rule's own bounds)
+    assert L.landing_score(1.0, 1.0, 30.0, 0.5, False) == pytest.approx(4.0)
+    assert L.landing_score(1.0, 1.0, 20.0, 0.9, False) == pytest.approx(4.0)
+    # no touchdown (or the run ended first): the pose terms score nothing
+    assert L.landing_score(0.2, 0.0, None, None, False) == pytest.approx(0.6)
+    # a steady landing on the side scores less than one on the feet, whatever its waist
+    assert L.landing_score(0.9, 0.0, 90.0, 0.8, False) < L.landing_score(0.9, 1.0, 10.0, 0.8, True)
+    with pytest.raises(ParameterError, match="finite"):
+        L.landing_score(float("nan"), 1.0, 0.0, 1.0, True)
+
+
 # ------------------------------------------------------------------------------------------ ranking
 
 

@@ -157,6 +157,12 @@ def test_make_evaluator_without_ray_says_how_to_install(monkeypatch):
     ({"orientations": (-1,)}, "orientations"),
     ({"use_similarity": "yes"}, "use_similarity"),
     ({"ray_address": ""}, "ray_address"),
+    ({"fitness": "eq10"}, "fitness"),
+    ({"one_net": 1}, "one_net"),
+    ({"generations_general": -1}, "generations_general"),
+    ({"general_drops": 0}, "general_drops"),
+    ({"general_max_tilt_deg": 0.0}, "general_max_tilt_deg"),
+    ({"general_max_tilt_deg": 200.0}, "general_max_tilt_deg"),
     ({"population": 4, "elite_frac": 0.5, "elimination_frac": 0.5}, "room"),
 ])
 def test_config_bad_values_are_one_line(kw, words):
@@ -378,3 +384,76 @@ def test_ray_evaluator_matches_the_process_pool(tmp_path, samples):
     assert not ray.is_initialized()
     assert on_ray["run"]["evaluator"].startswith("Ray")
     assert _numbers(on_ray) == _numbers(inline)
+
+
+# ------------------------------------------------------------------ landing fitness, one net, general stage
+GENERAL = replace(TINY, fitness="landing", generations_complex=1, generations_general=2, general_drops=3)
+
+
+def test_landing_fitness_scores_each_clause_of_the_rule(samples):
+    """fitness="landing": f is the rollout's `landing_score`; a cat dropped upright from 0.6 m on its feet
+    scores near the top, one dropped upside down near the bottom, and the score agrees with `landed`."""
+    from felis.learning.landing_eval import LandingSim
+
+    task, _ = lt.make_task(replace(TINY, fitness="landing", steps=100), samples)
+    sim = LandingSim()
+    try:
+        still = lambda it, t: np.zeros(12)  # noqa: E731 - hold the release pose
+        up = lt.score(task, 0, lt.run_rollout(sim, task, still, 0))
+        down = lt.score(task, 1, lt.run_rollout(sim, task, still, 1))
+    finally:
+        sim.close()
+    assert up[4] == 1.0 and up[0] > 4.9  # landed: every term full, + 1
+    assert down[4] == 0.0 and down[0] < 1.0
+
+
+def test_general_drops_are_fixed_per_seed_and_generation():
+    a, b = lt.general_drops(GENERAL, 1), lt.general_drops(GENERAL, 2)
+    assert a == lt.general_drops(GENERAL, 1) and a != b and len(a) == 3
+    assert [d[3] for d in a] == [1.0, 3.0, 1.0] and all(-180 <= x < 180 for d in a for x in d[:3])
+    assert lt.general_drops(replace(GENERAL, seed=4), 1) != a
+    near = lt.general_drops(replace(GENERAL, general_drops=40, general_max_tilt_deg=45.0), 1)
+    assert len(near) == 40 and max(lt.start_tilt_deg(d[0], d[1]) for d in near) <= 45.0
+    assert lt.start_tilt_deg(180.0, 0.0) == pytest.approx(180.0) and lt.start_tilt_deg(30.0, 40.0) == pytest.approx(
+        math.degrees(math.acos(math.cos(math.radians(30)) * math.cos(math.radians(40)))))
+
+
+def test_still_behaviour_holds_the_release_pose():
+    b = lt.still(random_simple(np.random.default_rng(2)))
+    it = np.random.default_rng(3).uniform(-1, 1, 15)
+    assert np.array_equal(b.velocities(it), np.zeros(12))
+
+
+def test_general_stage_trains_on_random_drops_and_ships_a_simple_behaviour(tmp_path, samples):
+    from felis.learning.landing_nets import SimpleBehaviour
+
+    seen = []
+    out, res = _train(tmp_path, samples, GENERAL, progress=lambda *a: seen.append(a[:3]))
+    assert seen == [("simple", 1, 2), ("simple", 2, 2), ("complex", 1, 1), ("general", 1, 2), ("general", 2, 2)]
+    g = res["general"]
+    assert len(g["best_mean_f"]) == 2  # new drops each generation, so the best's score need not rise
+    assert all(m <= b for m, b in zip(g["median_mean_f"], g["best_mean_f"], strict=True))
+    assert g["best_mean_D"] == [0.0, 0.0] and all(0.0 <= f <= 5.0 for f in g["median_mean_f"])
+    policy, meta = load_policy(out)
+    assert isinstance(policy, SimpleBehaviour) and meta["fitness"] == "landing" and meta["generations"] == [2, 1, 2]
+    _, again = _train(tmp_path, samples, replace(GENERAL, workers=2), name="again")
+    assert _numbers(again) == _numbers(res)
+    with pytest.raises(_Stop):
+        _train(tmp_path, samples, GENERAL, name="cut", progress=_stop_at("general", 1))
+    _, resumed = _train(tmp_path, samples, GENERAL, name="cut", resume=True)
+    assert resumed["run"]["resumed"] and _numbers(resumed) == _numbers(res)
+
+
+def test_one_net_mode_evolves_one_simple_behaviour_on_every_orientation(tmp_path, samples):
+    from felis.learning.landing_nets import SimpleBehaviour
+
+    cfg = replace(TINY, one_net=True, generations_simple=1, generations_complex=1)
+    seen = []
+    out, res = _train(tmp_path, samples, cfg, progress=lambda *a: seen.append(a[:3]))
+    assert seen == [("one-net", 1, 2), ("one-net", 2, 2)]
+    assert len(res["complex"]["best_mean_f"]) == 2 and len(res["final"]) == 2
+    assert all(c["best_f"] == [] for c in res["simple"])  # no per-orientation populations
+    policy, meta = load_policy(out)
+    assert isinstance(policy, SimpleBehaviour) and meta["one_net"] is True
+    _, again = _train(tmp_path, samples, cfg, name="again")
+    assert _numbers(again) == _numbers(res)

@@ -40,6 +40,19 @@ def register(train_sub, eval_sub, parser_class) -> None:
                    help="training orientations (indices into the motion samples; default all 7)")
     t.add_argument("--f-only", action="store_true", help="rank by the fitness f alone, without the similarity to "
                    "the motion samples (the paper's experiment 1)")
+    t.add_argument("--fitness", choices=("eq9", "landing"), default=d.fitness,
+                   help="eq9: the paper's eq. 9 x upright (default); landing: ours, partial credit for each clause "
+                   "of the landed rule")
+    t.add_argument("--one-net", action="store_true", help="one net on every training orientation instead of "
+                   "simple then complex (the paper's experiment 2 baseline)")
+    t.add_argument("--generations-general", type=int, default=d.generations_general,
+                   help="generations of a last stage on random drops from 1 m and 3 m (ours; default 0: none); "
+                   "its best is the policy")
+    t.add_argument("--general-drops", type=int, default=d.general_drops,
+                   help=f"random drops per generation of that stage (default {d.general_drops})")
+    t.add_argument("--general-max-tilt", type=float, default=d.general_max_tilt_deg, metavar="DEG",
+                   help="that stage draws only drops tilted at most this far from upright (default "
+                   f"{d.general_max_tilt_deg:g}: any)")
     t.add_argument("--samples", type=Path, metavar="FILE", help="motion samples (default: the shipped ones)")
     t.add_argument("--workers", type=int, help="local processes (default: every core)")
     t.add_argument("--ray-address", metavar="ADDRESS|auto|local",
@@ -70,7 +83,10 @@ def cmd_train_landing(args) -> int:
 
     cfg = TrainConfig(seed=args.seed, population=args.population, generations_simple=args.generations_simple,
                       generations_complex=args.generations_complex, orientations=tuple(args.orientations or ()),
-                      use_similarity=not args.f_only, samples=str(args.samples or ""), workers=args.workers,
+                      use_similarity=not args.f_only, samples=str(args.samples or ""), fitness=args.fitness,
+                      one_net=args.one_net, generations_general=args.generations_general,
+                      general_drops=args.general_drops, general_max_tilt_deg=args.general_max_tilt,
+                      workers=args.workers,
                       ray_address=args.ray_address)
     out = Path(args.out)
     if out.suffix.lower() != ".npz":
