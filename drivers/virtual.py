@@ -97,6 +97,13 @@ IMU (a robot whose description has one, e.g. the cat): a BNO08x in UART-RVC mode
 q_wb, specific force accel_b). ▸ While the robot is held (before torque first comes on) it is still in
 the operator's hands: the accelerometer reads the reaction to gravity, accel_b = R(q_wb)ᵀ·(−g), not the
 free fall a forward pass of the start pose shows (the cat's feet start 1 mm above the floor).
+
+Drop (``drop=(height m, roll°, pitch°, yaw°)``, ``felis virtual-bus --sim --drop H,R,P,Y``): before the
+servos and the IMU first publish, `felis.sim.scenarios.drop` places the floating base at rest, turned by
+roll, pitch, yaw, its lowest point ``height`` above the floor. The operator holds it there (the servos
+read the held joints, the IMU the turned orientation and the reaction to gravity) until torque first
+comes on: that is the release, and free fall starts with the physics. A drop needs the floating base
+(not ``fixed_base``); `check_drop` validates it (also in the parent, `spawn`).
 ``imu_mount`` / ``imu_drift`` (`felis.drivers.imu.SensorMount`) simulate a mis-mounted sensor whose
 orientation drifts: q_ws = q_wb ⊗ q_bs ⊗ exp(ω_d·t), accel_s = R(q_bs)ᵀ·accel_b, t on the sample clock.
 
@@ -1295,7 +1302,8 @@ class VirtualBus:
                   wire_time: bool = False, faults: Faults | str | None = None, seed: int = 0,
                   mount_offsets: Mapping[str, float] | None = None,
                   servo_params: Mapping[str, object] | None = None, fixed_base: bool = False,
-                  imu_mount: Sequence[float] | None = None, imu_drift: Sequence[float] | None = None) -> VirtualBus:
+                  imu_mount: Sequence[float] | None = None, imu_drift: Sequence[float] | None = None,
+                  drop: Sequence[float] | None = None) -> VirtualBus:
         """One servo per joint of a robot description (ID, model and mounting from it), at ``baud``,
         Return Delay Time 0, Min/Max Position Limit at the description's joint limits (as `felis check-eeprom`
         expects of a set-up robot). ``sim=True`` backs the servos with the
@@ -1306,12 +1314,14 @@ class VirtualBus:
         ``fixed_base`` hangs a floating-base robot on a stand (`felis.sim.robot.MujocoRobot`).
         ``imu_mount`` (unit quaternion w, x, y, z: the sensor in the body frame) and ``imu_drift``
         (sensor-frame rad/s, 3-vector) simulate a mis-mounted, drifting IMU (module doc; needs sim=True
-        and a robot with an IMU).
+        and a robot with an IMU). ``drop`` (height m, roll°, pitch°, yaw°) holds the robot in the air,
+        turned, until torque first comes on (module doc; needs sim=True and the floating base).
         """
         spec = spec_or_name if isinstance(spec_or_name, RobotSpec) else load_spec(spec_or_name)
         if (servo_params or fixed_base) and not sim:
             raise ParameterError("servo parameters and a fixed base apply to the simulation: they need sim=True "
                                  "(--sim)")
+        drop = check_drop(drop, sim=sim, fixed_base=fixed_base)
         imu_mount_model = None
         if imu_mount is not None or imu_drift is not None:
             if not sim or spec.sensors.imu is None:
@@ -1344,7 +1354,7 @@ class VirtualBus:
         if sim:
             try:
                 bus.sim = _SimBackend(bus, spec, servos, servo_params=servo_params, fixed_base=fixed_base,
-                                      imu_mount=imu_mount_model)
+                                      imu_mount=imu_mount_model, drop=drop)
             except BaseException:
                 bus.stop()
                 raise
@@ -1352,6 +1362,44 @@ class VirtualBus:
 
 
 # ----------------------------------------------------------------------------------------- simulation
+def check_drop(drop: Sequence[float] | None, *, sim: bool = True,
+               fixed_base: bool = False) -> tuple[float, float, float, float] | None:
+    """A drop (height m, roll°, pitch°, yaw°) as four floats, checked as `felis.sim.scenarios.drop` checks
+    it (and that it can apply: the simulation, a floating base); None passes. ParameterError, one line."""
+    if drop is None:
+        return None
+    from felis.sim.scenarios import MAX_DROP_HEIGHT
+
+    try:
+        values = tuple(float(v) for v in drop)
+    except (TypeError, ValueError):
+        values = ()
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise ParameterError(f"a drop is four finite numbers: height (m), roll, pitch, yaw (degrees), got {drop!r}")
+    h, *angles = values
+    if not 0.0 < h <= MAX_DROP_HEIGHT:
+        raise ParameterError(f"drop height must be above 0 and at most {MAX_DROP_HEIGHT:g} m, got {h:g}")
+    for name, a in zip(("roll", "pitch", "yaw"), angles, strict=True):
+        if abs(a) > 360:
+            raise ParameterError(f"drop {name} must be within ±360 degrees, got {a:g}")
+    if not sim:
+        raise ParameterError("a drop places the simulated robot in the air: it needs sim=True (--sim)")
+    if fixed_base:
+        raise ParameterError("a drop needs the floating base: it cannot be combined with a fixed base (--fixed-base)")
+    return values
+
+
+def check_floating_base(robot: RobotSpec | str) -> None:
+    """ParameterError unless the robot's MuJoCo model has a floating base (a drop needs one)."""
+    import mujoco
+
+    from felis.sim.robot import load_model, model_path
+
+    spec = robot if isinstance(robot, RobotSpec) else load_spec(robot)
+    if not (load_model(model_path(spec)).jnt_type == mujoco.mjtJoint.mjJNT_FREE).any():
+        raise ParameterError(f"{spec.name} is fixed to the world: only a free-floating robot can be dropped")
+
+
 class _SimBackend:
     """Servo-in-the-loop: the servos' horns are the MuJoCo model's joints (module doc)."""
 
@@ -1359,7 +1407,7 @@ class _SimBackend:
 
     def __init__(self, bus: VirtualBus, spec: RobotSpec, servos: list[VirtualServo], *,
                  servo_params: Mapping[str, object] | None = None, fixed_base: bool = False,
-                 imu_mount: SensorMount | None = None):
+                 imu_mount: SensorMount | None = None, drop: Sequence[float] | None = None):
         import numpy as np
 
         from felis.drivers.imu import SensorMount, quat_conj, quat_rotate
@@ -1371,6 +1419,11 @@ class _SimBackend:
         self.robot = MujocoRobot(spec, servo=dict(servo_params or {}), fixed_base=fixed_base)
         self.robot.connect()
         self.robot.arm()
+        self.drop_info = None
+        if drop is not None:  # held in the air, turned, until torque first comes on (module doc)
+            from felis.sim.scenarios import drop as place
+
+            self.drop_info = place(self.robot, *drop)
         self.dt = float(self.robot.model.opt.timestep)
         self.mounts = [s.mount for s in servos]
         self._revisions: tuple[int, ...] = ()
@@ -1593,16 +1646,23 @@ class VirtualBusProcess:
 def spawn(robot: str, *, sim: bool = False, baud: int = 1_000_000, wire_time: bool = False,
           faults: str | None = None, seed: int = 0, timeout: float = 20.0,
           servo_params: str | os.PathLike | None = None, fixed_base: bool = False,
-          imu_mount: Sequence[float] | None = None, imu_drift: Sequence[float] | None = None) -> VirtualBusProcess:
+          imu_mount: Sequence[float] | None = None, imu_drift: Sequence[float] | None = None,
+          drop: Sequence[float] | None = None) -> VirtualBusProcess:
     """Run ``felis virtual-bus`` for ``robot`` in a child process; raises CommError if it does not come up.
 
     ``servo_params`` (a servo parameter file, `felis.sim.servo_file`) and ``fixed_base`` apply to the
     simulation (``sim=True``); so do ``imu_mount`` (unit quaternion w, x, y, z, passed on as
-    ``--imu-mount-deg`` roll, pitch, yaw) and ``imu_drift`` (rad/s), as in `VirtualBus.for_robot`.
+    ``--imu-mount-deg`` roll, pitch, yaw), ``imu_drift`` (rad/s) and ``drop`` (height m, roll°, pitch°,
+    yaw°: held in the air until torque first comes on; checked here by `check_drop`), as in
+    `VirtualBus.for_robot`.
     """
     args = ["--robot", str(robot), "--baud", str(baud), "--seed", str(seed)]
     if sim:
         args.append("--sim")
+    drop = check_drop(drop, sim=sim, fixed_base=fixed_base)  # one line here, not a failed child
+    if drop is not None:
+        check_floating_base(robot)
+        args.append("--drop=" + ",".join(repr(v) for v in drop))
     if servo_params is not None:
         args += ["--servo-params", os.fspath(servo_params)]
     if fixed_base:

@@ -3,10 +3,23 @@
 Used by ``felis sim drop``, ``felis sim render``, ``felis run`` and ``felis demo``. Every input is
 checked before any file is created, so bad input writes nothing; a video is written to a temporary
 file and moved into place at the end, the MCAP log is written incrementally.
+
+Drops (``Episode.drop`` = height m, roll°, pitch°, yaw°; `felis.sim.scenarios.drop`):
+
+* ``backend="sim"``: MuJoCo places the robot and the run ends with the landing judge
+  (`felis.sim.landing.assess_landing`: tilt, feet down, impact, peak force).
+* ``backend="dxl"`` with ``port="virtual"``: the virtual bus's simulation holds the robot in the air
+  (`felis.drivers.virtual`, ``--drop``) and releases it when torque first comes on, so the run goes
+  through the whole hardware path. The result reports what that path can know: the drop and the final
+  tilt from the IMU (``final_tilt_deg``: the angle between the IMU's up-axis and vertical at the last
+  tick; sim drops report it too, for comparison), not the simulator's landing judge.
+* ``backend="dxl"`` on a real port: refused. Nobody can place the cat in the air at a set orientation
+  and let go on the loop's cue; a release trigger is not built.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,6 +28,8 @@ from felis.errors import ParameterError
 from felis.files import check_target
 from felis.loop import LoopReport, run_loop
 from felis.spec import load_spec
+
+G = 9.81  # m/s², MuJoCo's default gravity (the models')
 
 
 @dataclass
@@ -54,6 +69,7 @@ class EpisodeResult:
     files: dict[str, str]
     warnings: list[str] = field(default_factory=list)
     controller: dict | None = None  # the controller's own summary (e.g. arm-track's tracking error)
+    final_tilt_deg: float | None = None  # drops: IMU up-axis vs vertical at the last tick (None: no IMU)
 
     def as_dict(self) -> dict:
         out = {"run": self.report.as_dict(), "files": self.files}
@@ -67,7 +83,34 @@ class EpisodeResult:
                            "free_fall_s": round(d.fall_time, 4)}
         if self.landing is not None:
             out["landing"] = self.landing.as_dict()
+        if self.final_tilt_deg is not None:
+            out["final_tilt_deg"] = round(self.final_tilt_deg, 3)
         return out
+
+
+def tilt_deg(quat) -> float:
+    """Angle (degrees) between a body's up-axis and vertical, from its orientation quaternion (w, x, y, z):
+    up_z = 1 − 2(x² + y²) for a unit quaternion (normalised here)."""
+    w, x, y, z = (float(v) for v in quat)
+    n2 = w * w + x * x + y * y + z * z
+    up_z = 1.0 - 2.0 * (x * x + y * y) / n2
+    return math.degrees(math.acos(max(-1.0, min(1.0, up_z))))
+
+
+class _FinalTilt:
+    """Loop monitor: the tilt of the last tick whose state has an IMU reading."""
+
+    def __init__(self):
+        self.deg: float | None = None
+
+    def __call__(self, state, command) -> None:
+        imu = state.imu
+        if imu is not None and all(math.isfinite(float(v)) for v in imu.quat):
+            self.deg = tilt_deg(imu.quat)
+
+
+def _drop_meta(info) -> dict:
+    return {"height_m": info.height, "roll_deg": info.roll, "pitch_deg": info.pitch, "yaw_deg": info.yaw}
 
 
 def _check(ep: Episode) -> None:
@@ -127,6 +170,9 @@ def run_episode(ep: Episode) -> EpisodeResult:
         info = drop(robot, *ep.drop) if ep.drop is not None else None
         recorder = ImpactRecorder(robot).attach() if info is not None else None
         monitors = [] if ep.progress is None else [ep.progress]
+        final_tilt = _FinalTilt() if info is not None else None
+        if final_tilt is not None:
+            monitors.append(final_tilt)
         video = log = landing = None
         try:
             if ep.video is not None:
@@ -140,8 +186,7 @@ def run_episode(ep: Episode) -> EpisodeResult:
 
                 meta = {"controller": ep.controller, "backend": "sim", **ep.meta}
                 if info is not None:
-                    meta["drop"] = {"height_m": info.height, "roll_deg": info.roll, "pitch_deg": info.pitch,
-                                    "yaw_deg": info.yaw}
+                    meta["drop"] = _drop_meta(info)
                 log = RunLog(ep.log, spec, meta)
             report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock=ep.clock,
                               log=log, monitors=monitors)
@@ -168,7 +213,8 @@ def run_episode(ep: Episode) -> EpisodeResult:
         from felis.plotlog import plot_log
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
-    return EpisodeResult(report=report, landing=landing, drop=info, files=files, controller=ctl)
+    return EpisodeResult(report=report, landing=landing, drop=info, files=files, controller=ctl,
+                         final_tilt_deg=None if final_tilt is None else final_tilt.deg)
 
 
 def _summary(controller) -> dict | None:
@@ -178,17 +224,25 @@ def _summary(controller) -> dict | None:
 
 def run_hardware(ep: Episode) -> EpisodeResult:
     """The same run through the Dynamixel backend (wall clock). ``port="virtual"`` starts a virtual
-    bus whose servos are the MuJoCo model's joints (servo-in-the-loop): the whole hardware path."""
+    bus whose servos are the MuJoCo model's joints (servo-in-the-loop): the whole hardware path; a drop
+    is held there in the air and falls when torque comes on (module doc)."""
     import contextlib
 
     from felis.drivers.robot import DynamixelRobot
 
     spec = load_spec(ep.robot)
     controller = _controller(ep, spec)
-    if ep.drop is not None or ep.video is not None:
-        raise ParameterError("drops and video need the simulation backend (--backend sim)")
+    if ep.video is not None:
+        raise ParameterError("video needs the simulation backend (--backend sim)")
     if ep.port is None:
         raise ParameterError("the dxl backend needs --port PATH (see `felis find-port`) or --port virtual")
+    info = None
+    if ep.drop is not None:
+        if ep.port != "virtual":
+            raise ParameterError(f"a drop on real servos ({ep.port}) is not supported: nobody can place the cat in "
+                                 "the air at a set orientation and let go on cue (no release trigger is built); "
+                                 "use --backend sim or --port virtual")
+        info = _drop_info(ep.drop, spec)
     if ep.servo_params is not None and ep.port != "virtual":
         raise ParameterError("--servo-params sets the simulated servos: use it with --backend sim or --port virtual")
     if ep.servo_params is not None:
@@ -202,7 +256,8 @@ def run_hardware(ep: Episode) -> EpisodeResult:
         if port == "virtual":
             from felis.drivers.virtual import spawn
 
-            vb = stack.enter_context(spawn(ep.robot, sim=True, baud=ep.baud, servo_params=ep.servo_params))
+            vb = stack.enter_context(spawn(ep.robot, sim=True, baud=ep.baud, servo_params=ep.servo_params,
+                                           drop=ep.drop))
             port, imu_port = vb.port, imu_port or vb.imu_port
         calibration = _connect_checks(ep, spec, port)
         robot = stack.enter_context(DynamixelRobot(spec, port, ep.baud, imu_port=imu_port, calibration=calibration))
@@ -212,9 +267,14 @@ def run_hardware(ep: Episode) -> EpisodeResult:
             if ep.log is not None:
                 from felis.runlog import RunLog
 
-                log = RunLog(ep.log, spec, {"controller": ep.controller, "backend": "dxl", "port": ep.port,
-                                            "baud": ep.baud, **ep.meta})
+                meta = {"controller": ep.controller, "backend": "dxl", "port": ep.port, "baud": ep.baud, **ep.meta}
+                if info is not None:
+                    meta["drop"] = _drop_meta(info)
+                log = RunLog(ep.log, spec, meta)
             monitors = [] if ep.progress is None else [ep.progress]
+            final_tilt = _FinalTilt() if info is not None else None
+            if final_tilt is not None:
+                monitors.append(final_tilt)
             report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock="wall", log=log,
                               monitors=monitors)
             ctl = _summary(controller)
@@ -222,14 +282,28 @@ def run_hardware(ep: Episode) -> EpisodeResult:
             if log is not None:
                 log.close({"error": "run aborted"})
             raise
+        tilt = None if final_tilt is None else final_tilt.deg
         if log is not None:
-            log.close({"run": report.as_dict(), **({"controller": ctl} if ctl is not None else {})})
+            log.close({"run": report.as_dict(), **({"controller": ctl} if ctl is not None else {}),
+                       **({"final_tilt_deg": tilt} if tilt is not None else {})})
             files["log"] = str(ep.log)
     if ep.plot is not None and ep.log is not None:
         from felis.plotlog import plot_log
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
-    return EpisodeResult(report=report, landing=None, drop=None, files=files, warnings=ep.warnings, controller=ctl)
+    return EpisodeResult(report=report, landing=None, drop=info, files=files, warnings=ep.warnings, controller=ctl,
+                         final_tilt_deg=tilt)
+
+
+def _drop_info(drop, spec):
+    """A drop checked in this process (one line, before the virtual bus starts) as a `DropInfo`; free fall
+    √(2h/g) with g = `G`."""
+    from felis.drivers.virtual import check_drop, check_floating_base
+    from felis.sim.scenarios import DropInfo
+
+    h, roll, pitch, yaw = check_drop(drop)
+    check_floating_base(spec)
+    return DropInfo(h, roll, pitch, yaw, fall_time=math.sqrt(2 * h / G))
 
 
 def _connect_checks(ep: Episode, spec, port: str):

@@ -4,6 +4,7 @@
 
     felis virtual-bus --robot cat|arm|FILE.toml [--sim] [--baud B] [--faults SPEC] [--wire-time] [--seed S]
                       [--servo-params FILE] [--fixed-base] [--imu-mount-deg R,P,Y] [--imu-drift X,Y,Z]
+                      [--drop H,R,P,Y]
 
 Output contract (what `felis.drivers.virtual.spawn` and scripts rely on): the FIRST line of stdout is
 ``port: <device path>``, then ``imu: <device path>`` when the robot has an IMU and ``--sim`` backs it,
@@ -11,6 +12,11 @@ then one human-readable summary line; each is flushed at once. The bus serves un
 SIGTERM, then stops cleanly (every thread joined, ptys closed), prints its counters to stderr and
 exits 0. Bad arguments (unknown robot, baud rate a servo lacks, malformed fault spec) are
 `felis.errors.FelisError`s that the CLI prints as one line.
+
+``--sim --drop H,R,P,Y`` holds the robot in the air before release: its lowest point H m above the
+floor, turned by roll R, pitch P, yaw Y degrees (`felis.sim.scenarios.drop`); the fall starts when
+torque first comes on (`felis.drivers.virtual`, module doc). ``felis run … --backend dxl --port
+virtual --height H`` uses it.
 
 The process lowers Python's thread switch interval to 0.5 ms: the server thread shares the GIL with
 the simulation and IMU threads, and a reply must not wait the default 5 ms for it.
@@ -52,11 +58,14 @@ def register(sub, parser_class=None) -> None:
                    "(write --imu-mount-deg=-4,2,0 when the first value is negative)")
     p.add_argument("--imu-drift", metavar="X,Y,Z",
                    help="with --sim: the IMU's orientation drifts at this sensor-frame rate (rad/s)")
+    p.add_argument("--drop", metavar="H,R,P,Y",
+                   help="with --sim: hold the robot in the air, lowest point H m up, turned by roll, pitch, yaw "
+                   "degrees; it falls when torque first comes on (floating base only)")
     p.set_defaults(func=cmd_virtual_bus)
 
 
-def _triple(option: str, text: str | None) -> tuple[float, float, float] | None:
-    """'a,b,c' -> three finite floats (None when the option is absent); ParameterError otherwise."""
+def _numbers(option: str, text: str | None, n: int, example: str) -> tuple[float, ...] | None:
+    """'a,b,…' -> ``n`` finite floats (None when the option is absent); ParameterError otherwise."""
     if text is None:
         return None
     import math
@@ -67,9 +76,20 @@ def _triple(option: str, text: str | None) -> tuple[float, float, float] | None:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
         values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ParameterError(f"{option} takes three comma-separated numbers (e.g. 6,-4,0), got {text!r}")
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        words = {3: "three", 4: "four"}.get(n, str(n))
+        raise ParameterError(f"{option} takes {words} comma-separated numbers (e.g. {example}), got {text!r}")
     return values
+
+
+def _triple(option: str, text: str | None) -> tuple[float, float, float] | None:
+    """'a,b,c' -> three finite floats (None when the option is absent); ParameterError otherwise."""
+    return _numbers(option, text, 3, "6,-4,0")
+
+
+def _drop(text: str | None) -> tuple[float, float, float, float] | None:
+    """--drop 'H,R,P,Y' -> (height m, roll°, pitch°, yaw°), None when absent; ParameterError otherwise."""
+    return _numbers("--drop", text, 4, "1,180,0,0: height m, roll, pitch, yaw degrees")
 
 
 def summary(bus, args) -> str:
@@ -87,6 +107,10 @@ def summary(bus, args) -> str:
         backing += f", IMU mounted at roll,pitch,yaw {args.imu_mount_deg}°"
     if getattr(args, "imu_drift", None):
         backing += f", IMU drifting {args.imu_drift} rad/s"
+    drop = _drop(getattr(args, "drop", None))
+    if drop is not None:
+        backing += (f", held {drop[0]:g} m up at roll {drop[1]:g}° pitch {drop[2]:g}° yaw {drop[3]:g}° "
+                    "until torque comes on")
     timing = "wire time modelled" if args.wire_time else "replies at once"
     faults = f"faults {args.faults}" if args.faults else "no faults"
     return (f"virtual bus: {bus.spec.name}, {len(servos)} × {'/'.join(models)} (IDs {id_text}) at {args.baud} bps, "
@@ -114,6 +138,7 @@ def cmd_virtual_bus(args) -> int:
     from felis.drivers.virtual import VirtualBus, parse_faults
 
     faults = parse_faults(args.faults) if args.faults else None
+    drop = _drop(getattr(args, "drop", None))
     servo_params = None
     if getattr(args, "servo_params", None):
         from felis.sim.servo_file import load_servo_params
@@ -122,7 +147,7 @@ def cmd_virtual_bus(args) -> int:
         servo_params = load_servo_params(args.servo_params, load_spec(args.robot))
     bus = VirtualBus.for_robot(args.robot, baud=args.baud, sim=args.sim, wire_time=args.wire_time, faults=faults,
                                seed=args.seed, servo_params=servo_params,
-                               fixed_base=getattr(args, "fixed_base", False), **_imu_options(args))
+                               fixed_base=getattr(args, "fixed_base", False), drop=drop, **_imu_options(args))
     done = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: done.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     sys.setswitchinterval(SWITCH_INTERVAL_S)
