@@ -326,12 +326,12 @@ def test_demo(tmp_path):
 
     info = log_info(run / "drop.mcap")
     assert info["robot"] == "cat" and info["complete"] is True
-    on_feet = info["summary"]["landing"]["on_feet"]
-    assert on_feet is False  # upside-down under the stand controller: on its back
+    landing = info["summary"]["landing"]
+    assert landing["on_feet"] is True and landing["tilt_deg"] < 15  # tilted 56°, the shipped policy rights it
     text = words(r.stdout)
     verdict = re.search(r"landed (on its feet|on its back|on its side|upright but not on its feet)", text)
     assert verdict, r.stdout
-    assert (verdict.group(1) == "on its feet") == on_feet
+    assert verdict.group(1) == "on its feet"
     assert str(run.relative_to(tmp_path)) in text  # tells where the outputs are
     assert "Traceback" not in r.stderr
 

@@ -216,6 +216,22 @@ def test_summarise_and_run_drops_in_order():
     assert second["roll_deg"] == 180.0
 
 
+def test_shipped_policy_rights_the_demo_drop_that_passive_does_not():
+    """The shipped policy (learning/weights/landing.npz) against holding still, on the demo's drop (1 m,
+    tilted 56°) and on a drop it cannot right (upside down): what the policy adds, and where it stops."""
+    from felis.cli.main import DEMO_DROP
+    from felis.learning.landing_eval import default_policy, shipped_policy
+    from felis.learning.landing_nets import load_policy
+
+    assert default_policy() == "shipped" and check_policy("shipped") == "shipped"
+    load_policy(shipped_policy())  # a valid policy file
+    h, r, p, y = DEMO_DROP
+    drops = [Drop(r, p, y, h), Drop(180.0, 0.0, 0.0, 1.0)]
+    shipped, passive = (run_drops(drops, pol, workers=1) for pol in ("shipped", "passive"))
+    assert shipped[0].landed and not passive[0].landed, (shipped[0].why, passive[0].why)
+    assert not shipped[1].landed and not passive[1].landed  # upside down from 1 m: no XL330 cat turns 150°
+
+
 # ----------------------------------------------------------------------------------- the CLI
 def _args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser()
