@@ -96,7 +96,12 @@ IMU (a robot whose description has one, e.g. the cat): a BNO08x in UART-RVC mode
 (`felis.drivers.imu.RvcEmulator`, 100 Hz) on ``bus.imu_port`` reports the model's IMU site (orientation
 q_wb, specific force accel_b). ▸ While the robot is held (before torque first comes on) it is still in
 the operator's hands: the accelerometer reads the reaction to gravity, accel_b = R(q_wb)ᵀ·(−g), not the
-free fall a forward pass of the start pose shows (the cat's feet start 1 mm above the floor).
+free fall a forward pass of the start pose shows (the cat's feet start 1 mm above the floor). ▸ Once
+released, each sample's accelerometer reads the mean specific force over the sample period, like the
+sensor's own low-pass filter: accel_b = R(q_wb)ᵀ·((v(t) − v(t₀))/(t − t₀) − g), v the IMU site's world
+velocity and t₀ the previous sample's simulated time. An instantaneous reading would alias: the samples
+follow the wall clock, and a landing's impact, a few milliseconds long, falls between them. Each axis
+saturates at ±8 g (``ACCEL_RANGE_G``, the BNO08x accelerometer's full scale), as the real sensor does.
 
 Drop (``drop=(height m, roll°, pitch°, yaw°)``, ``felis virtual-bus --sim --drop H,R,P,Y``): before the
 servos and the IMU first publish, `felis.sim.scenarios.drop` places the floating base at rest, turned by
@@ -1404,6 +1409,7 @@ class _SimBackend:
     """Servo-in-the-loop: the servos' horns are the MuJoCo model's joints (module doc)."""
 
     MAX_STEPS = 20
+    ACCEL_RANGE_G = 8.0  # the IMU's accelerometer saturates here (per axis)
 
     def __init__(self, bus: VirtualBus, spec: RobotSpec, servos: list[VirtualServo], *,
                  servo_params: Mapping[str, object] | None = None, fixed_base: bool = False,
@@ -1432,6 +1438,15 @@ class _SimBackend:
         self._held = True  # physics waits until torque first comes on (`_run`)
         self._reaction = -np.asarray(self.robot.model.opt.gravity, dtype=float)  # specific force at rest, world
         self._quat_conj, self._quat_rotate = quat_conj, quat_rotate
+        self._site = None  # the IMU site (mean specific force per sample, module doc)
+        if spec.sensors.imu is not None:
+            import mujoco
+
+            self._mj = mujoco
+            self._site = mujoco.mj_name2id(self.robot.model, mujoco.mjtObj.mjOBJ_SITE, spec.sensors.imu)
+            self._vel = np.zeros(6)
+        self._site_tv: tuple[float, np.ndarray] | None = None  # (sim time, site world velocity) now
+        self._sample_tv: tuple[float, np.ndarray] | None = None  # the same at the previous IMU sample
         self._stop = threading.Event()
         for s in servos:
             s.external = True
@@ -1467,9 +1482,16 @@ class _SimBackend:
         with self.bus.lock:
             quat, accel = self.imu
             held = self._held
+            now, before = self._site_tv, self._sample_tv
+            self._sample_tv = now
         if held:  # still in the operator's hands: the accelerometer reads the reaction to gravity
             accel = self._quat_rotate(self._quat_conj(quat), self._reaction)
-        return self.imu_mount.sample(quat, accel)
+        elif now is not None and before is not None and now[0] > before[0]:  # mean over the sample period
+            mean = (now[1] - before[1]) / (now[0] - before[0]) + self._reaction
+            accel = self._quat_rotate(self._quat_conj(quat), mean)
+        quat, accel = self.imu_mount.sample(quat, accel)
+        limit = self.ACCEL_RANGE_G * 9.80665
+        return quat, self._np.clip(accel, -limit, limit)
 
     def pose(self, q) -> None:
         """The operator's hands on the simulated robot: joints to ``q`` (rad/m, description order), at rest.
@@ -1507,6 +1529,10 @@ class _SimBackend:
             s.set_present(theta, omega, tau)
         if state.imu is not None:
             self.imu = (state.imu.quat.copy(), state.imu.accel.copy())
+            if self._site is not None:
+                self._mj.mj_objectVelocity(self.robot.model, self.robot.data, self._mj.mjtObj.mjOBJ_SITE,
+                                           self._site, self._vel, 0)  # [angular; linear], world axes
+                self._site_tv = (state.t, self._vel[3:].copy())
 
     def _run_guarded(self) -> None:
         try:

@@ -16,6 +16,7 @@ from felis.calib.imu import ImuMounting, apply_mounting, estimate_mounting, moun
 from felis.cli.virtualbus import _imu_options
 from felis.drivers.bus import DynamixelBus
 from felis.drivers.imu import (
+    RATE_HZ,
     G,
     ImuReader,
     RvcEmulator,
@@ -188,10 +189,10 @@ def test_a_moving_robot_is_rejected():
 
 
 def test_a_steady_turn_is_not_a_bias():
-    t0 = time.monotonic()
+    samples = iter(range(10**6))
 
-    def turning():  # 0.5 rad/s about the vertical: still accelerometer, steady rate
-        return quat_exp([0.0, 0.0, 0.5 * (time.monotonic() - t0)]), UP
+    def turning():  # 0.5 rad/s about the vertical on the sensor's own sample clock: still accelerometer
+        return quat_exp([0.0, 0.0, 0.5 * next(samples) / RATE_HZ]), UP
 
     with pytest.raises(CalibrationError, match="turned steadily at 0.5"):
         _estimate_on(turning)

@@ -130,7 +130,7 @@ def test_cli_run_landing_drop_on_mujoco(tmp_path, policy):
                      "--policy", str(policy), "--json"))
     assert out["drop"] == {"height_m": 1.0, "roll_deg": 180.0, "pitch_deg": 0.0, "yaw_deg": 0.0,
                            "free_fall_s": pytest.approx((2 / 9.81) ** 0.5, abs=1e-3)}
-    assert out["run"]["sim_time_s"] == pytest.approx(out["drop"]["free_fall_s"] + 1.0, abs=0.011)  # default duration
+    assert out["run"]["sim_time_s"] == pytest.approx(out["drop"]["free_fall_s"] + 2.0, abs=0.011)  # default duration
     landing = out["landing"]
     assert landing["first_contact_s"] == pytest.approx(out["drop"]["free_fall_s"], abs=0.02)  # it fell 1 m
     assert not landing["on_feet"] and landing["tilt_deg"] > 90  # a random policy does not turn it over
@@ -145,7 +145,7 @@ def test_cli_run_landing_drop_through_the_virtual_bus(tmp_path, policy):
     out = _ok(_felis(tmp_path, "run", "landing", "--robot", "cat", "--height", "1", "--roll", "180",
                      "--policy", str(policy), "--backend", "dxl", "--port", "virtual", "--log", "drop.mcap", "--json"))
     assert out["drop"]["height_m"] == 1.0 and out["drop"]["roll_deg"] == 180.0
-    assert out["run"]["ok"] and out["run"]["sim_time_s"] == pytest.approx(out["drop"]["free_fall_s"] + 1.0, abs=0.05)
+    assert out["run"]["ok"] and out["run"]["sim_time_s"] == pytest.approx(out["drop"]["free_fall_s"] + 2.0, abs=0.05)
     assert "landing" not in out  # the simulator's judge is not part of the hardware path
     assert out["final_tilt_deg"] > 90  # held upside down, released, landed on its back (a random policy)
     log = read_log(tmp_path / "drop.mcap")
