@@ -18,7 +18,9 @@ to real time (needed for hardware, optional for simulation, e.g. servo-in-the-lo
 The watchdog (see `felis.safety`) disarms the robot past its tolerances; any exception from the
 controller, a monitor or the backend disarms it too before propagating. Torque is left off at
 the end of a run unless ``keep_armed`` is set. A fatal `CommError` (the port vanished) ends the
-run at once (``stopped = "comm lost: …"``).
+run at once (``stopped = "comm lost: …"``). The reads before the first tick (the state the controller
+is reset with, before and after arming) follow the watchdog's rule: a failed one is tried again up to
+``read_fail_tolerance`` times, then raised (a bus under load can drop one group read).
 
 The report gives the control path's time per tick (read → write, excluding monitors, logging,
 physics and sleep): mean, p99, max; the mean time of monitors + logging; and overruns: with the
@@ -147,11 +149,11 @@ def run_loop(
     ticks = 0
     stale_ticks = write_failures = 0
     finished = False  # the loop ended by its own rules, not by an exception
-    state = robot.read()
+    state = _first_read(robot, cfg.read_fail_tolerance)
     try:
         if robot.lifecycle is not Lifecycle.ARMED:
             robot.arm()
-            state = robot.read()
+            state = _first_read(robot, cfg.read_fail_tolerance)
         controller.reset(robot.spec, state)
         layer.reset(state.q)
         for m in monitors:
@@ -239,6 +241,22 @@ def run_loop(
         timing=Timing.from_samples(control[:ticks], extra[:ticks], dog.overruns, dt), safety=layer.counters.as_dict(),
         read_failures=dog.read_failures, stale_ticks=stale_ticks, write_failures=write_failures, final_state=state,
     )
+
+
+def _first_read(robot: Robot, tolerance: int) -> State:
+    """The state the controller starts from: the watchdog's rule before the first tick.
+
+    A failed read (no reply, a corrupt packet) is tried again, up to ``tolerance`` more times, as the
+    loop's watchdog tolerates that many in a row; a fatal one (the port is gone) or one failure too many
+    is raised: a controller never starts from a state that was not read.
+    """
+    for attempt in range(tolerance + 1):
+        try:
+            return robot.read()
+        except CommError as e:
+            if getattr(e, "fatal", False) or attempt == tolerance:
+                raise
+    raise AssertionError("unreachable")  # pragma: no cover
 
 
 def _hardware_summary(spec, bits: np.ndarray) -> str:

@@ -138,11 +138,18 @@ def test_watchdog_disarms_after_too_many_read_failures():
         assert report.ticks < 25
 
 
-def test_failure_right_after_arming_leaves_torque_off():
-    robot = FlakyCat(fail_ticks=[2])  # read 1: before arming; read 2: the first read once armed
+def test_the_first_reads_are_tried_again_as_the_watchdog_would():
+    robot = FlakyCat(fail_ticks=[1, 3, 4, 5])  # read 1 before arming, reads 3–5 once armed
     with robot:
-        with pytest.raises(CommError):
-            run_loop(robot, PoseController("stand"), duration=1.0)
+        report = run_loop(robot, PoseController("stand"), duration=0.1)
+    assert report.ok and report.ticks == 10 and robot.reads == 6 + 10
+
+
+def test_failure_right_after_arming_leaves_torque_off():
+    robot = FlakyCat(fail_ticks=[2, 3, 4, 5])  # read 1: before arming; reads 2–5: once armed, one too many
+    with robot:
+        with pytest.raises(CommError, match="read 5"):
+            run_loop(robot, PoseController("stand"), duration=1.0, safety=SafetyConfig(read_fail_tolerance=3))
         assert robot.lifecycle is Lifecycle.CONNECTED
         assert np.all(robot.model.actuator_gainprm[:, 0] == 0)
 
