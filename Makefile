@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench ik-study lint clean
+.PHONY: demo test test-slow bench ik-study landing-study lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -33,6 +33,10 @@ bench: $(STAMP)
 # The IK nets' size table and the paper's ablations over 3 seeds (about 35 min on 2 cores).
 ik-study: $(STAMP)
 	$(PY) bench/ik_study.py
+
+# Seed 000's §6.6 experiments over 3 seeds with baselines (about 35 min on 2 cores).
+landing-study: $(STAMP)
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) bench/landing_study.py --json runs/landing_study.json
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

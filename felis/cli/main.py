@@ -241,7 +241,7 @@ def cmd_run(args) -> int:
         # drop_height: where the robot reports no height (dxl), the controller predicts it by free fall
         options = {"policy": args.policy, "drop_height": None if drop is None else drop[0]}
         if duration is None and drop is not None:
-            duration = (2 * max(drop[0], 0.0) / 9.81) ** 0.5 + 1.0  # the fall, then a second on the ground
+            duration = (2 * max(drop[0], 0.0) / 9.81) ** 0.5 + 2.0  # the fall, the bounce, then settled
     elif args.policy is not None:
         raise ParameterError("--policy belongs to the landing controller")
     duration = 3.0 if duration is None else duration
@@ -366,7 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--calibration", type=Path, metavar="FILE", help="dxl: a calibration file instead of --robot-id")
     run.add_argument("--yes", action="store_true", help="dxl: apply EEPROM setting differences without asking")
     run.add_argument("--duration", type=_float, help="seconds (default 3; arm-track: the trajectory's length; "
-                     "landing with --height: the fall √(2h/g) + 1 s)")
+                     "landing with --height: the fall √(2h/g) + 2 s)")
     run.add_argument("--height", type=_float, help="drop the robot: its lowest point this high above the floor (m); "
                      "sim, or dxl with --port virtual (held until torque comes on)")
     run.add_argument("--roll", type=_float, default=0.0, help="with --height: initial roll (deg, default 0)")

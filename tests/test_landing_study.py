@@ -1,0 +1,37 @@
+"""Smoke test of ``bench/landing_study.py`` (the §6.6 reproduction): a tiny budget, one seed, every
+experiment and baseline present in the results and the table. Numbers at this budget mean nothing."""
+
+import json
+
+import pytest
+from conftest import load_bench
+
+TINY = {"population": 3, "exp1_generations": 1, "generations_simple": 1, "generations_complex": 1}
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_bench("landing_study")
+
+
+def test_tiny_study_has_every_experiment_and_baseline(bench, tmp_path):
+    res = bench.study([5], TINY, workers=1, tmp=tmp_path)
+    row = res["seeds"]["5"]
+    for name in ("f", "f+similarity"):  # experiment 1: orientations 1 and 4, generations or None (never)
+        first = row[f"exp1 {name}"]["first_landed"]
+        assert len(first) == 2 and all(g is None or g == 1 for g in first)
+        assert [len(c) for c in row[f"exp1 {name}"]["best_f"]] == [1, 1]
+    for exp, n in (("exp2", 7), ("exp3", 4)):
+        for name in ("one-net", "simple-complex"):
+            r = row[f"{exp} {name}"]
+            assert r["of"] == n and 0 <= r["landed"] <= n and 0 <= r["upright"] <= n
+            assert r["per_drop"].count(True) == r["landed"]
+    assert set(res["baselines"]) == {"passive", "rules", "shipped"}
+    assert res["baselines"]["passive"]["training"]["landed"] == 0  # 3 m, tilted ≥ 90°: nothing lands held still
+    text = bench.table(res)
+    assert "(1) f+similarity: generations to first landing" in text
+    assert "| (2) baseline shipped: landed (upright) of 7 training orientations |" in text
+    assert "| (3) baseline passive: landed (upright) of 4 untrained orientations |" in text
+    assert "(1) f: best f after 1 generations" in text
+    assert text.count("| seed 5 |") == 1
+    json.dumps(res)  # what --json writes
