@@ -59,6 +59,15 @@ USB-serial adapters deliver bytes in bursts (an FTDI latency timer is 16 ms by d
 times jitter by more than the 10 ms between samples. The 0.01° quantisation of the angles gives a
 rate noise of roughly 0.01°·√2 / 10 ms ≈ 0.025 rad/s.
 
+Accelerometer between control ticks
+-----------------------------------
+A control loop at the sensor's rate still sees two frames arrive between some ticks and none between
+others (receive-time jitter, above). `ImuReader.read` therefore reports the mean accelerometer of
+every frame received since the previous ``read()``, with the latest orientation and rate: a short
+impact (a landing's lasts less than one 10 ms sample) is kept, since the mean preserves the velocity
+change Σ a·Δt over the frames, where taking only the latest frame would drop it. `latest` peeks at
+the latest frame alone.
+
 Mounting
 --------
 The sensor sits in the robot's body at a rotation q_bs and its orientation drifts, so a still sensor
@@ -420,11 +429,11 @@ def frames_between(prev_index: int, index: int, dt_rx: float, rate_hz: float) ->
 class ImuReader:
     """Reads a BNO08x in UART-RVC mode on a serial port in a background thread.
 
-    Keeps the latest frame, its receive time (``time.monotonic``) and a body-rate estimate from the
-    last two frames (see the module docstring). Counters: ``frames``, ``bad_checksums``,
-    ``dropped_bytes``, ``lost_frames`` (index gaps). If the port fails while running, the thread
-    stops, ``error`` holds a one-line message, ``latest()`` keeps returning the last reading and
-    ``stale()`` is true.
+    Keeps the latest frame, its receive time (``time.monotonic``), a body-rate estimate from the
+    last two frames and the accelerometer's sum since the previous `read` (see the module docstring).
+    Counters: ``frames``, ``bad_checksums``, ``dropped_bytes``, ``lost_frames`` (index gaps). If the
+    port fails while running, the thread stops, ``error`` holds a one-line message, ``latest()`` keeps
+    returning the last reading and ``stale()`` is true.
 
     ``rate_hz`` is the sensor's sample rate (100 Hz in RVC mode), used as the Δt of the body rate.
     Raises `CommError` naming the port if it cannot be opened.
@@ -440,6 +449,7 @@ class ImuReader:
         self._frame: RvcFrame | None = None
         self._t_rx = -math.inf
         self._gyro: np.ndarray | None = None
+        self._accel_sum, self._accel_n = np.zeros(3), 0  # frames since the previous read()
         self._stop = threading.Event()
         try:
             self._ser = serial.Serial(port, baud, timeout=0.05)
@@ -483,11 +493,15 @@ class ImuReader:
         with self._lock:
             for f in frames:
                 prev = self._frame
+                n = 1
                 if prev is not None:
                     n = frames_between(prev.index, f.index, t - self._t_rx, self.rate_hz)
                     if n > 0:  # n == 0: a repeated frame carries no new rate information
                         self._gyro = body_rate(prev.quat, f.quat, n / self.rate_hz)
                         self.lost_frames += n - 1
+                if n > 0:
+                    self._accel_sum += f.accel
+                    self._accel_n += 1
                 self._frame, self._t_rx = f, t
             self._lock.notify_all()
 
@@ -499,6 +513,18 @@ class ImuReader:
         if f is None or gyro is None:
             return None
         return Imu(quat=f.quat, gyro=gyro.copy(), accel=f.accel.copy())
+
+    def read(self) -> Imu | None:
+        """The reading for one control tick: the latest orientation and rate, and the mean accelerometer
+        of the frames received since the previous ``read()`` (the latest frame's when none arrived; see
+        the module docstring). None until two frames gave a rate."""
+        with self._lock:
+            f, gyro = self._frame, self._gyro
+            if f is None or gyro is None:
+                return None
+            accel = self._accel_sum / self._accel_n if self._accel_n else f.accel.copy()
+            self._accel_sum, self._accel_n = np.zeros(3), 0
+        return Imu(quat=f.quat, gyro=gyro.copy(), accel=accel)
 
     def latest_frame(self) -> RvcFrame | None:
         """The latest decoded frame, or None before the first."""

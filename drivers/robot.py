@@ -18,7 +18,10 @@ no extra packet), else of Goal Position alone (address 116, 4 bytes). A
 servo that did not answer keeps its last values and is marked in ``State.faults.stale``; if none
 answered, ``read()`` raises `CommError` (the loop holds the last command and counts it). A status
 byte with the Alert bit triggers a read of Hardware Error Status (at most every
-``hardware_poll_s`` per servo) into ``State.faults.hardware``.
+``hardware_poll_s`` per servo) into ``State.faults.hardware``. IMU (``imu_port``): each tick's
+``State.imu`` is `ImuReader.read` (latest orientation and rate, the accelerometer's mean since the last
+tick); when the sensor has gone quiet (no frame for ``IMU_MAX_AGE_S``) or its port failed, ``State.imu`` is
+None rather than a frozen reading: a controller never steers by an orientation that stopped updating.
 
 ``arm()`` reads the present positions, writes them as goals, then enables torque and reads Torque
 Enable back: no jump at start-up, and a servo that refuses torque (hardware-error shutdown) is an
@@ -45,6 +48,9 @@ _GOAL = (116, 4)  # Goal Position alone
 _TORQUE_ENABLE = 64
 _HOMING_OFFSET = 20
 _BLOCK_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+
+
+IMU_MAX_AGE_S = 0.1  # an IMU reading older than this is none (10 samples at 100 Hz; USB delivers in ~16 ms bursts)
 
 
 @dataclass(frozen=True)
@@ -248,8 +254,8 @@ class DynamixelRobot(RobotBase):
     def _read(self) -> State:
         stale = self._read_block()
         imu = None
-        if self.imu is not None:
-            imu = self.imu.latest()
+        if self.imu is not None and not self.imu.stale(IMU_MAX_AGE_S):
+            imu = self.imu.read()  # accel: the mean since the previous tick
             cal = self.calibration
             if imu is not None and (cal.imu_rotation is not None or cal.gyro_bias is not None):
                 imu = apply_mounting(imu, cal.imu_rotation, cal.gyro_bias)  # sensor frame -> body frame

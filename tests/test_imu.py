@@ -302,6 +302,27 @@ def test_end_to_end_emulator_to_reader_then_port_vanishes():
     assert reader.stale()
 
 
+def test_read_keeps_an_impact_that_falls_between_two_ticks():
+    """One frame of 100 m/s² among still ones: `latest()` has moved past it by the next tick, `read()`
+    reports the mean of the frames since the previous read, so the impact shows."""
+    still, spike_at = [0.0, 0.0, G], 30
+    n = 0
+
+    def source():
+        nonlocal n
+        n += 1
+        return np.array([1.0, 0.0, 0.0, 0.0]), [0.0, 0.0, 100.0] if n == spike_at else still
+
+    with RvcEmulator(source) as emu, ImuReader(emu.port) as reader:
+        assert reader.wait(frames=5, timeout=3.0) and reader.frames < spike_at
+        assert reader.read().accel == pytest.approx(still, abs=0.01)
+        assert reader.wait(frames=spike_at + 5, timeout=3.0)
+        assert reader.latest().accel == pytest.approx(still, abs=0.01)  # the latest frame alone: still
+        got = reader.read().accel  # mean of ≥ 30 frames, one of them the spike
+        assert got[2] > G + 1.0 and got[2] <= G + (100.0 - G) / (spike_at - 5) + 0.01
+        assert reader.read().accel == pytest.approx(still, abs=0.01)  # the next tick: still again
+
+
 def test_reader_counts_injected_faults():
     with RvcEmulator(_Turntable(), drop_rate=0.3, corrupt_rate=0.3, seed=3) as emu, ImuReader(emu.port) as reader:
         assert reader.wait(frames=20, timeout=3.0)

@@ -31,7 +31,7 @@ from felis.drivers.imu import (
     quat_rotate,
     rvc_from_quat,
 )
-from felis.drivers.robot import Calibration, DynamixelRobot
+from felis.drivers.robot import IMU_MAX_AGE_S, Calibration, DynamixelRobot
 from felis.drivers.virtual import VirtualBus, spawn
 from felis.errors import CalibrationError, ParameterError
 from felis.hal import Imu
@@ -263,6 +263,29 @@ def test_mount_and_drift_are_recovered_and_applied_by_the_robot():
     assert _vec_angle_deg(np.mean(accel, axis=0), UP) < 0.5
     assert np.linalg.norm(np.mean(gyro, axis=0)) < 0.005
     assert np.abs(gyro).max() < 0.05
+
+
+def test_a_quiet_imu_is_no_reading_not_a_frozen_one():
+    """The IMU emulator's thread stops (its source fails): the port stays open but goes quiet. The robot
+    then reports no IMU reading instead of repeating the last orientation."""
+    spec = load_spec("cat")
+    with VirtualBus.for_robot("cat", sim=True) as bus, _robot(spec, bus) as robot:
+        assert robot.imu.wait(robot.imu.frames + 3) and robot.read().imu is not None
+
+        def broken():
+            raise RuntimeError("sensor failed")
+
+        bus.sim._emulator.source = broken
+        assert _wait_until(lambda: bus.sim._emulator.error is not None)
+        time.sleep(IMU_MAX_AGE_S + 0.05)
+        assert robot.read().imu is None and robot.imu.error is None  # quiet, not vanished
+
+
+def _wait_until(cond, timeout: float = 2.0) -> bool:
+    end = time.monotonic() + timeout
+    while not cond() and time.monotonic() < end:
+        time.sleep(0.005)
+    return cond()
 
 
 def test_calibrated_robot_reports_a_level_body():

@@ -98,15 +98,15 @@ def tilt_deg(quat) -> float:
 
 
 class _FinalTilt:
-    """Loop monitor: the tilt of the last tick whose state has an IMU reading."""
+    """Loop monitor: the IMU's tilt at the last tick; None when that tick had no reading (a quiet sensor)."""
 
     def __init__(self):
         self.deg: float | None = None
 
     def __call__(self, state, command) -> None:
         imu = state.imu
-        if imu is not None and all(math.isfinite(float(v)) for v in imu.quat):
-            self.deg = tilt_deg(imu.quat)
+        ok = imu is not None and all(math.isfinite(float(v)) for v in imu.quat)
+        self.deg = tilt_deg(imu.quat) if ok else None
 
 
 def _drop_meta(info) -> dict:
