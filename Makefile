@@ -34,7 +34,7 @@ bench: $(STAMP)
 ik-study: $(STAMP)
 	$(PY) bench/ik_study.py
 
-# Seed 000's §6.6 experiments over 3 seeds with baselines (about 35 min on 2 cores).
+# Seed 000's §6.6 experiments over 3 seeds with baselines (about 25 min on 2 cores).
 landing-study: $(STAMP)
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) bench/landing_study.py --json runs/landing_study.json
 

@@ -25,7 +25,7 @@ rule of the nearest training orientation, `landing_samples`), and the shipped po
 (``learning/weights/landing.npz``; made with ``fitness="landing"`` and the general stage, see
 docs/landing.md). Deterministic per seed.
 
-Run (about 35 min on 2 cores; ``--quick`` for a smoke run; ``make landing-study`` writes
+Run (about 25 min on 2 cores; ``--quick`` for a smoke run; ``make landing-study`` writes
 runs/landing_study.json)::
 
     MUJOCO_GL=egl .venv/bin/python bench/landing_study.py [--seeds 0 1 2] [--json OUT.json] [--quick]
