@@ -28,7 +28,7 @@ docs/landing.md). Deterministic per seed.
 Run (about 25 min on 2 cores; ``--quick`` for a smoke run; ``make landing-study`` writes
 runs/landing_study.json)::
 
-    MUJOCO_GL=egl .venv/bin/python bench/landing_study.py [--seeds 0 1 2] [--json OUT.json] [--quick]
+    MUJOCO_GL=egl .venv/bin/python bench/landing_study.py [--seeds 0 1 2] [--json OUT.json] [--ray-address A] [--quick]
 """
 
 from __future__ import annotations
@@ -66,11 +66,11 @@ def _landed(policy: str, drops: list[Drop], workers: int | None) -> dict:
             "of": len(out), "per_drop": [bool(o.landed) for o in out]}
 
 
-def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path) -> dict:
+def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_address: str | None = None) -> dict:
     samples = load_samples(DEFAULT_SAMPLES)
     train_drops = [Drop(*map(float, s.orientation), float(s.height_m)) for s in samples]
     untrained = [Drop(*o, TRAIN_HEIGHT_M) for o in UNTRAINED]
-    base = {"population": budget["population"], "workers": workers}
+    base = {"population": budget["population"], "workers": workers, "ray_address": ray_address}
     res: dict = {"budget": budget, "untrained": [list(o) for o in UNTRAINED],
                  "training": [list(map(float, s.orientation)) for s in samples], "seeds": {}}
     for seed in seeds:
@@ -133,12 +133,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--json", type=Path, help="write the results here")
     ap.add_argument("--workers", type=int, help="processes (default: every core)")
+    ap.add_argument("--ray-address", help="train on Ray: 'local', 'auto' or a cluster address (results identical)")
     ap.add_argument("--quick", action="store_true", help="a tiny budget: a smoke run, not a measurement")
     args = ap.parse_args(argv)
     budget = QUICK if args.quick else FULL
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="felis-landing-study-") as tmp:
-        res = study(args.seeds, budget, args.workers, Path(tmp))
+        res = study(args.seeds, budget, args.workers, Path(tmp), args.ray_address)
     res["seconds"] = round(time.perf_counter() - t0, 1)
     print(table(res))
     print(f"({res['seconds']} s)")
