@@ -31,7 +31,9 @@ Hardware Error Status (addr 70) to names. Status errors on writes raise :class:`
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import fcntl
 import glob
 import math
 import os
@@ -164,6 +166,63 @@ def _is_pty(port: str) -> bool:
     return real.startswith("/dev/pts/") or real.startswith("/dev/pty")
 
 
+def port_holders(port: str) -> list[str]:
+    """Other processes that have ``port`` open, as ``"PID 123 (felis monitor …)"`` (best effort: /proc)."""
+    real = os.path.realpath(port)
+    out = []
+    me = os.getpid()
+    for pid_dir in glob.glob("/proc/[0-9]*"):
+        pid = int(os.path.basename(pid_dir))
+        if pid == me:
+            continue
+        try:
+            fds = os.listdir(f"{pid_dir}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                if os.readlink(f"{pid_dir}/fd/{fd}") == real:
+                    break
+            except OSError:
+                continue
+        else:
+            continue
+        try:
+            with open(f"{pid_dir}/cmdline", "rb") as f:
+                cmd = f.read(4096).replace(b"\0", b" ").decode(errors="replace").strip()
+        except OSError:
+            cmd = "?"
+        out.append(f"PID {pid} ({cmd[:100]})")
+    return out
+
+
+def in_use_message(port: str) -> str:
+    holders = port_holders(port)
+    who = f" by {', '.join(holders)}" if holders else " by another program"
+    return (f"{port} is in use{who}: two programs on one bus corrupt each other's replies; stop the other one "
+            "first (another felis, Dynamixel Wizard, a serial console)")
+
+
+def lock_port(port: str) -> int:
+    """Take the exclusive advisory lock of a serial device; returns the descriptor that holds it.
+
+    PortError naming the holder when another program has it locked (or opened it with TIOCEXCL)."""
+    try:
+        fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as e:
+        if e.errno == errno.EBUSY:
+            raise PortError(in_use_message(port)) from None
+        raise PortError(f"cannot open {port}: {e.strerror}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as e:
+        os.close(fd)
+        if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise PortError(in_use_message(port)) from None
+        raise PortError(f"cannot lock {port}: {e.strerror}") from None
+    return fd
+
+
 class DynamixelBus:
     """A Dynamixel Protocol 2.0 bus on one serial port.
 
@@ -193,6 +252,7 @@ class DynamixelBus:
         self._latency_ms: float | None = None
         self._margin_ms = timeout_margin_ms
         self._port: sdk.PortHandler | None = None
+        self._lock_fd: int | None = None  # holds the port's exclusive flock while open
         self._ph = sdk.PacketHandler(2.0)
         self._lock = threading.RLock()
         self.models: dict[int, ControlTable] = {}
@@ -208,20 +268,30 @@ class DynamixelBus:
         return self._port is not None and self._port.is_open
 
     def open(self) -> DynamixelBus:
-        """Open the port; PortError (one line, with the fix) when it cannot be."""
+        """Open the port exclusively; PortError (one line, with the fix) when it cannot be.
+
+        Exclusive: before the SDK touches the device (pyserial's open reconfigures the line and flushes
+        its input queue, which would steal another program's replies), an ``flock(LOCK_EX)`` is taken on
+        it, as pyserial's ``exclusive=True`` does; a second felis program, or any client that locks the
+        same way, is refused with one line naming the holder. ``TIOCEXCL`` is then set on the SDK's
+        descriptor, so other non-root programs cannot open the device at all while felis has it.
+        """
         if self.is_open:
             return self
         check_port_path(self.port_name)
+        self._lock_fd = lock_port(self.port_name)
         port = sdk.PortHandler(self.port_name)
         port.baudrate = self.baud
         try:
             port.openPort()
         except (serial.SerialException, OSError) as e:
+            self._unlock()
             msg = str(e)
             if "busy" in msg.lower() or getattr(e, "errno", None) == errno.EBUSY:
-                raise PortError(f"{self.port_name} is in use by another program (close it, e.g. another felis "
-                                "or Dynamixel Wizard)") from None
+                raise PortError(in_use_message(self.port_name)) from None
             raise PortError(f"cannot open {self.port_name}: {msg}") from None
+        with contextlib.suppress(OSError, AttributeError, termios.error):
+            fcntl.ioctl(port.ser.fileno(), termios.TIOCEXCL)
         self._port = port
         pty = _is_pty(self.port_name)
         lat = latency_timer_ms(self.port_name)
@@ -235,10 +305,19 @@ class DynamixelBus:
             if self._port is not None:
                 try:
                     if self._port.ser is not None:
+                        with contextlib.suppress(OSError, AttributeError, termios.error):
+                            fcntl.ioctl(self._port.ser.fileno(), termios.TIOCNXCL)
                         self._port.closePort()
                 except (serial.SerialException, OSError):
                     pass
                 self._port = None
+            self._unlock()
+
+    def _unlock(self) -> None:
+        if self._lock_fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._lock_fd)  # closing the descriptor releases the flock
+            self._lock_fd = None
 
     def __enter__(self) -> DynamixelBus:
         return self.open()
@@ -739,5 +818,5 @@ def candidate_ports() -> list[str]:
 
 __all__ = ["DynamixelBus", "PortError", "NoReplyError", "CorruptReplyError", "ServoStatusError", "ServoStats",
            "Found", "BlockRead", "SDK_BAUDS", "BAUD_RATES", "baud_code", "check_port_path", "latency_timer_ms",
-           "latency_fix", "candidate_ports"]
+           "latency_fix", "candidate_ports", "lock_port", "port_holders"]
 

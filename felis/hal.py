@@ -46,6 +46,9 @@ class Faults:
     hardware: np.ndarray  # int per joint, 0 = healthy
     comm_errors: int = 0  # failed transactions since connect
     stale: np.ndarray | None = None  # bool per joint: value not refreshed this tick
+    torque_off: np.ndarray | None = None  # bool per joint: torque read off while the host holds it on
+    rebooted: np.ndarray | None = None  # bool per joint: the servo lost its RAM settings (power dip, reboot)
+    watchdog: np.ndarray | None = None  # bool per joint: the servo's Bus Watchdog tripped (it ignores goals)
 
     @staticmethod
     def none(n: int) -> Faults:
@@ -53,7 +56,8 @@ class Faults:
 
     @property
     def any(self) -> bool:
-        return bool(self.hardware.any()) or (self.stale is not None and bool(self.stale.any()))
+        return bool(self.hardware.any()) or any(m is not None and bool(m.any()) for m in (
+            self.stale, self.torque_off, self.rebooted, self.watchdog))
 
 
 @dataclass(frozen=True)
@@ -250,7 +254,15 @@ class RobotBase:
 
     def __enter__(self):
         if self._life is Lifecycle.DISCONNECTED:
-            self.connect()
+            try:
+                self.connect()
+            except BaseException:  # a failed or interrupted connect releases the port, torque off
+                try:
+                    self._close()
+                except Exception:  # noqa: BLE001 - already failing; the first error is the one to report
+                    pass
+                self._life = Lifecycle.DISCONNECTED
+                raise
         return self
 
     def __exit__(self, *exc) -> None:

@@ -5,7 +5,9 @@
     for each tick k (t_k = t_0 + k·dt):
         state   = robot.read()              # CommError: hold the last command; watchdog counts
                                             # stale joints (no reply) count like a failed read
-                                            # a hardware error (servo shutdown) stops the run
+                                            # a hardware error (servo shutdown), torque gone off
+                                            # (switched off, a servo rebooted) or a tripped Bus
+                                            # Watchdog stops the run, naming the joints
         command = controller(state)
         command = safety.filter(command)    # non-finite → hold, soft limits, max step
         sent    = robot.write(command)      # what the backend actually sent (after its clamping)
@@ -18,9 +20,13 @@ to real time (needed for hardware, optional for simulation, e.g. servo-in-the-lo
 The watchdog (see `felis.safety`) disarms the robot past its tolerances; any exception from the
 controller, a monitor or the backend disarms it too before propagating. Torque is left off at
 the end of a run unless ``keep_armed`` is set. A fatal `CommError` (the port vanished) ends the
-run at once (``stopped = "comm lost: …"``). The reads before the first tick (the state the controller
-is reset with, before and after arming) follow the watchdog's rule: a failed one is tried again up to
-``read_fail_tolerance`` times, then raised (a bus under load can drop one group read).
+run at once (``stopped = "comm lost: …"``, also logged as a ``comm_lost`` event). An IMU that stops
+reporting mid-run (``state.imu`` turns None) is an ``imu_lost`` event, and a stop (``"imu lost"``) when
+the controller declares ``needs_imu = True``. A signal (`felis.shutdown`) or Ctrl-C ends the run as
+``"interrupted (SIGTERM)"`` and the like; torque goes off on every way out. The reads before the first
+tick (the state the controller is reset with, before and after arming) follow the watchdog's rule: a
+failed one is tried again up to ``read_fail_tolerance`` times, then raised (a bus under load can drop
+one group read).
 
 The report gives the control path's time per tick (read → write, excluding monitors, logging,
 physics and sleep): mean, p99, max; the mean time of monitors + logging; and overruns: with the
@@ -85,17 +91,26 @@ class LoopReport:
     ticks: int
     sim_time_s: float
     wall_time_s: float
-    stopped: str  # "duration", "until", "interrupted", "watchdog: …", "hardware error: …", "comm lost: …"
+    stopped: str  # "duration", "until", "interrupted (SIG…)", "watchdog: …", "hardware error: …", "torque lost: …",
+    #               "bus watchdog: …", "comm lost: …", "imu lost: …"
     timing: Timing
     safety: dict[str, int]
     read_failures: int
     stale_ticks: int = 0  # ticks where some joint's reading was not refreshed (hardware)
     write_failures: int = 0
     final_state: State | None = field(default=None, repr=False)
+    comm: dict[str, int] = field(default_factory=dict)  # the bus's counters (hardware): retries, timeouts, …
+    torque_off_verified: bool | None = None  # hardware: torque read back as 0 at the end (None: not known)
+
+    FAILURES = ("watchdog", "hardware error", "torque lost", "bus watchdog", "comm lost", "imu lost")
 
     @property
     def ok(self) -> bool:
-        return not self.stopped.startswith(("watchdog", "hardware error", "comm lost"))
+        return not self.stopped.startswith(self.FAILURES)
+
+    @property
+    def interrupted(self) -> bool:
+        return self.stopped.startswith("interrupted")
 
     def as_dict(self) -> dict:
         return {
@@ -104,7 +119,7 @@ class LoopReport:
             "wall_time_s": round(self.wall_time_s, 4), "stopped": self.stopped, "ok": self.ok,
             "timing": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.timing.__dict__.items()},
             "safety": self.safety, "read_failures": self.read_failures, "stale_ticks": self.stale_ticks,
-            "write_failures": self.write_failures,
+            "write_failures": self.write_failures, "comm": self.comm, "torque_off_verified": self.torque_off_verified,
         }
 
 
@@ -149,6 +164,8 @@ def run_loop(
     ticks = 0
     stale_ticks = write_failures = 0
     finished = False  # the loop ended by its own rules, not by an exception
+    needs_imu = bool(getattr(controller, "needs_imu", False))
+    imu_seen = imu_lost = False
     state = _first_read(robot, cfg.read_fail_tolerance)
     try:
         if robot.lifecycle is not Lifecycle.ARMED:
@@ -164,7 +181,8 @@ def run_loop(
             t0 = time.perf_counter()
             try:
                 state = robot.read()
-                stale = state.faults.stale
+                faults = state.faults
+                stale = faults.stale if faults is not None else None
                 if stale is not None and stale.any():  # some servos did not answer: their values are old
                     stale_ticks += 1
                     names = [robot.spec.names[i] for i in np.flatnonzero(stale)]
@@ -173,14 +191,28 @@ def run_loop(
                         break
                 else:
                     dog.read_ok()
-                if cfg.stop_on_hardware_error and state.faults.hardware.any():
-                    stopped = "hardware error: " + _hardware_summary(robot.spec, state.faults.hardware)
+                halt = servo_stop(robot.spec, faults, cfg.stop_on_hardware_error)
+                if halt is not None:
+                    kind, stopped = halt
                     if log is not None:
-                        log.event(state.t, "hardware_error", detail=stopped)
+                        log.event(state.t, kind, detail=stopped)
                     break
+                had_imu, imu_now = imu_seen, state.imu is not None
+                imu_seen = imu_seen or imu_now
+                if had_imu and not imu_now and not imu_lost:
+                    imu_lost = True
+                    if log is not None:
+                        log.event(state.t, "imu_lost", detail="the IMU stopped reporting")
+                    if needs_imu:
+                        stopped = "imu lost: the IMU stopped reporting and the controller needs it"
+                        break
+                elif imu_now and imu_lost:
+                    imu_lost = False
+                    if log is not None:
+                        log.event(state.t, "imu_back")
                 command = layer.filter(controller(state))
             except CommError as e:
-                if getattr(e, "fatal", False):  # the port is gone: nothing to hold
+                if e.fatal:  # the port is gone: nothing to hold
                     stopped = f"comm lost: {e}"
                     break
                 layer.events = []
@@ -193,7 +225,7 @@ def run_loop(
             try:
                 sent = robot.write(command)
             except CommError as e:
-                if getattr(e, "fatal", False):
+                if e.fatal:
                     stopped = f"comm lost: {e}"
                     break
                 write_failures += 1
@@ -228,19 +260,69 @@ def run_loop(
                 stopped = f"watchdog: {dog.tripped}"
                 break
         finished = True
-    except KeyboardInterrupt:
-        stopped = "interrupted"
+    except KeyboardInterrupt as e:
+        stopped = f"interrupted ({getattr(e, 'signame', 'SIGINT')})"
+        if log is not None:
+            log.event(state.t, "interrupted", signal=getattr(e, "signame", "SIGINT"))
     finally:
         if not (finished and keep_armed and stopped in ("duration", "until")):
-            robot.disarm()  # torque off: on exceptions, interrupts and watchdog trips, whatever keep_armed says
-    if stopped.startswith("watchdog") and log is not None:
-        log.event(state.t, "watchdog", reason=dog.tripped)
+            _disarm(robot)  # torque off: on exceptions, interrupts and watchdog trips, whatever keep_armed says
+    verified = getattr(robot, "torque_off_verified", None)
+    if log is not None:
+        if stopped.startswith("watchdog"):
+            log.event(state.t, "watchdog", reason=dog.tripped)
+        elif stopped.startswith("comm lost"):
+            log.event(state.t, "comm_lost", detail=stopped[len("comm lost: "):])
+        if verified is not None:
+            log.event(state.t, "torque_off", verified=bool(verified))
     return LoopReport(
         robot=robot.spec.name, controller=name, clock=clock, rate_hz=rate, ticks=ticks,
         sim_time_s=ticks * dt, wall_time_s=time.perf_counter() - wall0, stopped=stopped,
         timing=Timing.from_samples(control[:ticks], extra[:ticks], dog.overruns, dt), safety=layer.counters.as_dict(),
         read_failures=dog.read_failures, stale_ticks=stale_ticks, write_failures=write_failures, final_state=state,
+        comm=_comm_counters(robot), torque_off_verified=verified,
     )
+
+
+def _disarm(robot: Robot) -> None:
+    """Torque off on the way out; a second signal while it is written does not cut it short."""
+    try:
+        robot.disarm()
+    except KeyboardInterrupt:  # pragma: no cover - felis.shutdown raises only once; a plain SIGINT may not
+        robot.disarm()
+        raise
+
+
+def servo_stop(spec, faults, stop_on_hardware_error: bool) -> tuple[str, str] | None:
+    """(event kind, stopped text) when a servo can no longer follow: hardware error, torque gone,
+    Bus Watchdog tripped; None otherwise."""
+    if faults is None:
+        return None
+    if stop_on_hardware_error and faults.hardware.any():
+        return "hardware_error", "hardware error: " + _hardware_summary(spec, faults.hardware)
+    for mask, kind, text in ((faults.rebooted, "torque_lost", "torque lost: {} rebooted (power dip or brown-out?)"),
+                             (faults.torque_off, "torque_lost",
+                              "torque lost: {} switched off (by another program, or the servo's own shutdown)"),
+                             (faults.watchdog, "bus_watchdog",
+                              "bus watchdog: {} stopped (the host was silent longer than the Bus Watchdog time)")):
+        if mask is not None and mask.any():
+            names = ", ".join(f"{spec.joints[i].name} (ID {spec.joints[i].servo_id})" for i in np.flatnonzero(mask))
+            return kind, text.format(names)
+    return None
+
+
+def _comm_counters(robot: Robot) -> dict[str, int]:
+    """The bus's counters summed over servos (hardware backends), {} otherwise."""
+    bus = getattr(robot, "bus", None)
+    stats = getattr(bus, "stats", None)
+    if not isinstance(stats, dict):
+        return {}
+    out = {"retries": 0, "timeouts": 0, "corrupt": 0, "status_errors": 0}
+    for st in stats.values():
+        for k in out:
+            out[k] += int(getattr(st, k, 0))
+    out["failed_transactions"] = int(getattr(bus, "failed_transactions", 0))
+    return out
 
 
 def _first_read(robot: Robot, tolerance: int) -> State:
@@ -254,9 +336,9 @@ def _first_read(robot: Robot, tolerance: int) -> State:
         try:
             return robot.read()
         except CommError as e:
-            if getattr(e, "fatal", False) or attempt == tolerance:
+            if e.fatal or attempt == tolerance:
                 raise
-    raise AssertionError("unreachable")  # pragma: no cover
+    raise CommError("no state was read")  # tolerance < 0
 
 
 def _hardware_summary(spec, bits: np.ndarray) -> str:

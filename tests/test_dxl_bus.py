@@ -218,20 +218,28 @@ def test_robot_arms_without_a_jump_and_reads_si(cat_bus):
         assert s0.q.shape == (12,) and np.allclose(s0.q, 0.0, atol=0.01)
         robot.arm()
         spec = robot.spec
-        b = DynamixelBus(cat_bus.port, BAUD).open()
-        try:
-            goals = [b.read(j.servo_id, "goal_position", raw=True) for j in spec.joints]
-            present = [b.read(j.servo_id, "present_position", raw=True) for j in spec.joints]
-            assert goals == present
-            q = spec.pose("stand")
-            robot.write(Command(q=q))
-            time.sleep(0.4)
-            assert np.allclose(robot.read().q, q, atol=0.02)
-        finally:
-            b.close()
+        # the robot holds the port exclusively: look at the emulated servos themselves
+        goals = [cat_bus.servo(j.servo_id).get("goal_position") for j in spec.joints]
+        present = [cat_bus.servo(j.servo_id).get("present_position") for j in spec.joints]
+        assert goals == present
+        q = spec.pose("stand")
+        robot.write(Command(q=q))
+        time.sleep(0.4)
+        assert np.allclose(robot.read().q, q, atol=0.02)
     b = DynamixelBus(cat_bus.port, BAUD).open()
     assert [b.read(i, "torque_enable", raw=True) for i in range(1, 13)] == [0] * 12  # off after close
     b.close()
+
+
+def test_second_program_on_the_port_is_refused_naming_the_holder(cat_bus, bus):
+    """The port is opened exclusively: a second client is one line naming the holder (this process)
+    and never touches the line, so the first keeps working."""
+    with pytest.raises(PortError, match=r"is in use"):
+        DynamixelBus(cat_bus.port, BAUD).open()
+    assert bus.ping(1).model == "XL330-M288-T"
+    bus.close()
+    with DynamixelBus(cat_bus.port, BAUD) as again:  # released on close
+        assert again.ping(1).model == "XL330-M288-T"
 
 
 def test_robot_connect_names_missing_servos(cat_bus):
@@ -412,10 +420,10 @@ def test_velocity_limits_ride_in_the_goal_write_and_are_reset(cat_bus):
         robot.arm()
         q = robot.read().q
         robot.write(Command(q=q, dq_max=np.full(12, 2.0)))
-        with DynamixelBus(cat_bus.port, BAUD) as b:
-            assert b.read(1, "profile_velocity") == pytest.approx(2.0, rel=0.02)
-            robot.write(Command(q=q))
-            assert b.read(1, "profile_velocity", raw=True) == 0
+        b = robot.bus  # the robot holds the port exclusively: read through its own bus
+        assert b.read(1, "profile_velocity") == pytest.approx(2.0, rel=0.02)
+        robot.write(Command(q=q))
+        assert b.read(1, "profile_velocity", raw=True) == 0
 
 
 def test_return_delay_warning_names_the_fix(cat_bus):

@@ -1,8 +1,12 @@
 """``felis``: the command line.
 
 Every failure an operator can cause (bad arguments, unknown robot, malformed description, missing
-file, invalid parameters) prints one line, ``error: …``, and exits non-zero (2 for usage, 1 for
-the rest); ``--debug`` shows the traceback instead. ``--json`` prints machine-readable results.
+file, invalid parameters) prints one line, ``error: …``, on stderr and exits non-zero (2 for usage, 1
+for the rest); ``--debug`` shows the traceback instead. ``--json`` prints machine-readable results.
+
+One shutdown path (`felis.shutdown`): SIGINT, SIGTERM and SIGHUP all unwind the command as a
+``KeyboardInterrupt``, so torque goes off (and is read back), the log gets its summary and child
+processes stop whichever way a command is stopped; an interrupted command exits 130.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from datetime import datetime
 from pathlib import Path
 
 from felis.errors import FelisError, ParameterError
+from felis.shutdown import EXIT_INTERRUPTED, signals
 
 EXIT_ERROR, EXIT_USAGE = 1, 2
 
@@ -95,6 +100,20 @@ def _print_result(res, console) -> None:
     console.print(f"loop: control path mean {t.mean_ms:.3f} ms, p99 {t.p99_ms:.3f} ms, max {t.max_ms:.3f} ms; "
                   f"{t.overruns} overruns of the {t.period_ms:g} ms period; monitors+log {t.monitors_mean_ms:.2f} "
                   f"ms/tick; safety: {r.safety}")
+    comm_bad = r.read_failures or r.stale_ticks or r.write_failures or any(r.comm.values())
+    if r.comm or comm_bad:
+        c = r.comm
+        colour = "yellow" if comm_bad else "green"
+        console.print(f"[{colour}]communication: {r.read_failures} read failures, {r.stale_ticks} stale ticks, "
+                      f"{r.write_failures} write failures; {c.get('retries', 0)} retries, {c.get('timeouts', 0)} "
+                      f"timeouts, {c.get('corrupt', 0)} corrupt replies[/]")
+    if r.torque_off_verified is not None:
+        if r.torque_off_verified:
+            console.print("[green]torque off: read back as 0 on every servo[/]")
+        else:
+            console.print("[red]torque off could NOT be verified: check the servos (`felis torque off`)[/]")
+    if not r.ok:
+        console.print(f"[red]stopped: {r.stopped}[/]")
     if res.drop is not None:
         console.print(f"drop: {res.drop.height:g} m, roll {res.drop.roll:g}° pitch {res.drop.pitch:g}° "
                       f"yaw {res.drop.yaw:g}° (free fall √(2h/g) = {res.drop.fall_time:.3f} s)")
@@ -120,12 +139,22 @@ def _print_result(res, console) -> None:
 
 
 def _report(args, res) -> int:
-    """Print an episode's result (JSON or text); exit code 1 if the watchdog stopped it."""
+    """Print an episode's result (JSON or text); exit code 1 if a failure stopped it (the reason also on
+    stderr), 130 if a signal did."""
     if args.json:
         _print_json(res.as_dict())
     else:
         _print_result(res, _console())
-    return 0 if res.report.ok else EXIT_ERROR
+    return _exit_code(res.report)
+
+
+def _exit_code(report) -> int:
+    if report.interrupted:
+        return EXIT_INTERRUPTED
+    if not report.ok:
+        print(f"error: run stopped: {report.stopped}", file=sys.stderr)
+        return EXIT_ERROR
+    return 0
 
 
 def _episode(args, **kw):
@@ -300,6 +329,8 @@ def cmd_demo(args) -> int:
                        rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
                        meta={"demo": True})
     _print_result(bus_res, console)
+    if bus_res.report.interrupted:
+        return EXIT_INTERRUPTED
     console.print("[bold]felis demo 2/4[/]: the cat dropped from 1 m tilted 56° (roll -50°, pitch -30°) under the "
                   "landing controller running the shipped evolved policy (seed 000; MuJoCo). Held still, it lands "
                   "on its back from this drop; see docs/landing.md for where the policy fails")
@@ -309,6 +340,8 @@ def cmd_demo(args) -> int:
                    log=run_dir / "drop.mcap", video=None if args.no_video else run_dir / "drop.mp4",
                    plot=run_dir / "drop.png", meta={"demo": True})
     _print_result(res, console)
+    if res.report.interrupted:
+        return EXIT_INTERRUPTED
     console.print("[bold]felis demo 3/4[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
                   "Posture Estimator → mean filter → exact refinement (MuJoCo)")
     from felis.controllers.arm_track import run_time, trajectory_from
@@ -319,6 +352,8 @@ def cmd_demo(args) -> int:
                        video=None if args.no_video else run_dir / "arm_figure8.mp4",
                        plot=run_dir / "arm_figure8.png", meta={"demo": True})
     _print_result(arm_res, console)
+    if arm_res.report.interrupted:
+        return EXIT_INTERRUPTED
     console.print("[bold]felis demo 4/4[/]: the standing cat pushed sideways: the XCoM balance monitor's margin "
                   "and alarm, without a reaction and with the learned strategy selector (MuJoCo)")
     from felis.cli.balance import push_demo
@@ -330,7 +365,7 @@ def cmd_demo(args) -> int:
                       f"reaction {r['strategy']}; peak tilt {r['max_tilt_deg']:.0f}°")
     console.print("  " + ", ".join(f"{k}: {v}" for k, v in push["files"].items()))
     console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {run_dir}/")
-    return 0 if res.report.ok and bus_res.report.ok and arm_res.report.ok else EXIT_ERROR
+    return max((_exit_code(r.report) for r in (bus_res, res, arm_res)), default=0)
 
 
 # --------------------------------------------------------------------------------- parser
@@ -480,7 +515,8 @@ def main(argv: list[str] | None = None) -> int:
 
             if not has_display():
                 os.environ["MUJOCO_GL"] = "egl"
-        return int(args.func(args) or 0)
+        with signals():
+            return int(args.func(args) or 0)
     except UsageError as e:
         if debug:
             raise
@@ -493,9 +529,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_ERROR
     except BrokenPipeError:  # output piped into e.g. `head`
         return 0
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:
+        print(f"error: interrupted ({getattr(e, 'signame', 'SIGINT')})", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except Exception as e:  # noqa: BLE001 - the CLI's contract: one line unless --debug
         if debug:
             raise
