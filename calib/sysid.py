@@ -67,6 +67,7 @@ import numpy as np
 
 from felis.errors import FelisError, SysidError
 from felis.hal import Command, Lifecycle, Robot
+from felis.loop import servo_stop
 from felis.servos import servo_model
 from felis.sim.servo import ServoParams, servo_params
 from felis.spec import RobotSpec
@@ -347,6 +348,9 @@ def record(robot: Robot, joints: Sequence[str] | None = None, *, rate_hz: float 
                 last = s
             except FelisError:
                 s, valid[k] = last, False
+            stop = servo_stop(spec, s.faults, True)
+            if stop is not None:  # a servo that cannot follow: the recording is worthless, and so is going on
+                raise SysidError(f"recording stopped: {stop[1]}")
             t_write[k] = (a, b)
             t_read[k] = (b, clock() - t0)  # the read starts when the write returns
         else:

@@ -11,21 +11,34 @@ calibration with direction ``c`` and offset ``o`` (rad; identity until calibrati
 so a calibrated joint has the same zero and sign as the MJCF model. Effort comes from Present
 Current (× stall torque / stall current) or, on XL430, Present Load (fraction of stall torque).
 
-Per tick: one sync read of the contiguous block Present Current/Load, Velocity, Position (address
-126, 10 bytes; Fast Sync Read where the firmware has it) and one sync write of Profile Velocity +
-Goal Position (address 112, 8 bytes, contiguous) when the command carries velocity limits (so they cost
-no extra packet), else of Goal Position alone (address 116, 4 bytes). A
-servo that did not answer keeps its last values and is marked in ``State.faults.stale``; if none
-answered, ``read()`` raises `CommError` (the loop holds the last command and counts it). A status
-byte with the Alert bit triggers a read of Hardware Error Status (at most every
-``hardware_poll_s`` per servo) into ``State.faults.hardware``. IMU (``imu_port``): each tick's
+Per tick: one sync read (Fast Sync Read where the firmware has it) of a 13-byte block that Indirect
+Addressing gathers at Indirect Data 1 (`TICK_ITEMS`): Torque Enable (64), Hardware Error Status (70),
+Bus Watchdog (98) and Present Current/Load, Velocity, Position (126, 10 bytes); and one sync write of
+Profile Velocity + Goal Position (address 112, 8 bytes, contiguous) when the command carries velocity
+limits (so they cost no extra packet), else of Goal Position alone (address 116, 4 bytes). The map is
+written at connect (read back; a servo whose torque was on gets it when arming, with torque briefly
+off). So every tick knows, per servo: whether torque is still on (a servo switched off from elsewhere,
+or one that rebooted after a power dip: its RAM, the map included, is back to factory values and its
+block reads as zeros: ``State.faults.torque_off`` / ``rebooted``), its hardware error bits
+(``State.faults.hardware``) and whether its Bus Watchdog tripped (``State.faults.watchdog``). The loop
+stops the run on each, naming the joint. A servo that did not answer keeps its last values and is
+marked in ``State.faults.stale``; if none answered, ``read()`` raises `CommError` (the loop holds the
+last command and counts it). IMU (``imu_port``): each tick's
 ``State.imu`` is `ImuReader.read` (latest orientation and rate, the accelerometer's mean since the last
 tick); when the sensor has gone quiet (no frame for ``IMU_MAX_AGE_S``) or its port failed, ``State.imu`` is
 None rather than a frozen reading: a controller never steers by an orientation that stopped updating.
 
 ``arm()`` reads the present positions, writes them as goals, then enables torque and reads Torque
 Enable back: no jump at start-up, and a servo that refuses torque (hardware-error shutdown) is an
-error naming it. Torque goes off on ``disarm()``, ``close()`` and on any unhandled exception.
+error naming it. Torque goes off on ``disarm()``, ``close()`` and on any unhandled exception, and is
+read back (``torque_off_verified``: True when every servo that answered reads 0).
+
+Deadman (``bus_watchdog_s``, default `BUS_WATCHDOG_S` = 0.1 s): the first goal write after arming sets
+every servo's Bus Watchdog (item 98, units of 20 ms). If the host then goes silent (SIGKILL, a hung or
+dead host, a pulled USB cable), each servo stops where it is within that time: it holds its present
+position and refuses goal writes (the item reads −1) until cleared. Disarming clears it (writes 0), and
+connecting clears one that a killed run left tripped (with a warning). ``bus_watchdog_s=None``
+disables it.
 """
 
 from __future__ import annotations
@@ -46,8 +59,15 @@ from felis.spec import RobotSpec
 _GOAL_BLOCK = (112, 8)  # Profile Velocity (4) + Goal Position (4)
 _GOAL = (116, 4)  # Goal Position alone
 _TORQUE_ENABLE = 64
+_BUS_WATCHDOG = 98
 _HOMING_OFFSET = 20
 _BLOCK_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+# what one tick reads per servo, gathered by Indirect Addressing: addresses in order, then the layout
+TICK_ITEMS = (_TORQUE_ENABLE, 70, _BUS_WATCHDOG, *range(STATE_BLOCK[0], STATE_BLOCK[0] + STATE_BLOCK[1]))
+_TICK_DTYPE = np.dtype([("torque", "u1"), ("hw", "u1"), ("watchdog", "u1"), ("current", "<i2"),
+                        ("velocity", "<i4"), ("position", "<i4")])
+BUS_WATCHDOG_S = 0.1  # the deadman: servos stop this long after the host's last packet
+WATCHDOG_TRIPPED = 0xFF  # Bus Watchdog reads -1 once tripped
 
 
 IMU_MAX_AGE_S = 0.1  # an IMU reading older than this is none (10 samples at 100 Hz; USB delivers in ~16 ms bursts)
@@ -93,7 +113,8 @@ class DynamixelRobot(RobotBase):
 
     def __init__(self, spec: RobotSpec, port: str, baud: int = 1_000_000, *, calibration: Calibration | None = None,
                  imu_port: str | None = None, bus: DynamixelBus | None = None, retries: int = 1,
-                 fast_sync_read: bool = True, hardware_poll_s: float = 0.5):
+                 fast_sync_read: bool = True, hardware_poll_s: float = 0.5,
+                 bus_watchdog_s: float | None = BUS_WATCHDOG_S):
         super().__init__(spec)
         self.bus = bus or DynamixelBus(port, baud, retries=retries, fast_sync_read=fast_sync_read)
         self.ids = [j.servo_id for j in spec.joints]
@@ -124,6 +145,16 @@ class DynamixelRobot(RobotBase):
         self._torque = np.zeros(n, dtype=bool)
         self._t0 = time.monotonic()
         self._profile_set = False  # a nonzero Profile Velocity was written: the next write must reset it
+        if bus_watchdog_s is not None and not 0.02 <= bus_watchdog_s <= 127 * 0.02:
+            raise ValueError(f"bus_watchdog_s must be within 0.02…2.54 s (or None), got {bus_watchdog_s}")
+        self.bus_watchdog_s = bus_watchdog_s
+        self._deadman_on = False  # the Bus Watchdog is set on the servos
+        self._indirect: dict[int, tuple[int, int]] = {}  # servo ID -> (Indirect Address 1, Indirect Data 1)
+        self._mapped = np.zeros(n, dtype=bool)  # the tick map is in place on this servo
+        self._torque_lost = np.zeros(n, dtype=bool)
+        self._rebooted = np.zeros(n, dtype=bool)
+        self._tripped = np.zeros(n, dtype=bool)
+        self.torque_off_verified: bool | None = None  # after disarm/close: every answering servo read 0
 
     # ------------------------------------------------------------------ conversions
     def q_to_ticks(self, q: np.ndarray) -> np.ndarray:
@@ -167,6 +198,8 @@ class DynamixelRobot(RobotBase):
             if differ:
                 raise CalibrationError(f"Homing Offset differs from the calibration file: {'; '.join(differ)}; "
                                        "see `felis calibration diff` and resolve with `felis calibration apply`")
+        self._clear_watchdog(warn=True)
+        self._install_map()
         for i, secs, fix in bus.check_return_delay(self.ids):
             self.warnings.append(f"servo {i}: Return Delay Time {secs * 1e6:.0f} µs slows every read; fix: {fix}")
         lat = bus.latency_warning()
@@ -185,6 +218,12 @@ class DynamixelRobot(RobotBase):
         ticks = self.q_to_ticks(self._q)
         bus.sync_write(*_GOAL_BLOCK, {i: _goal_bytes(0, t) for i, t in zip(self.ids, ticks, strict=True)})
         self._profile_set = False
+        if not self._mapped.all() and self._indirect:  # torque was on at connect: map with torque off
+            bus.sync_write(_TORQUE_ENABLE, 1, {i: b"\x00" for i, m in zip(self.ids, self._mapped, strict=True)
+                                               if not m})
+            self._install_map()
+        self._torque_lost[:] = self._rebooted[:] = self._tripped[:] = False
+        self._deadman_on = False
         self._set_torque(np.ones(self.spec.n, dtype=bool))
         back = bus.sync_read(self.ids, _TORQUE_ENABLE, 1, fast=False, retries=2)
         refused = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints
@@ -208,35 +247,115 @@ class DynamixelRobot(RobotBase):
 
     def _disarm(self) -> None:
         if self.bus.is_open:
-            self._set_torque(np.zeros(self.spec.n, dtype=bool))
+            self._safe_off()
 
     def _close(self) -> None:
         try:
             if self.bus.is_open:
                 try:
-                    self._set_torque(np.zeros(self.spec.n, dtype=bool))
+                    self._safe_off()
                 except CommError:
-                    pass  # the port is gone: nothing more we can do
+                    pass  # the port is gone: nothing more we can do (the Bus Watchdog stops the servos)
         finally:
             self.bus.close()
             if self.imu is not None:
                 self.imu.close()
                 self.imu = None
 
+    def _safe_off(self) -> None:
+        """Torque off, the deadman cleared, and Torque Enable read back (``torque_off_verified``).
+
+        A servo that still reads 1 gets the write again (a lost sync write); one that does not answer
+        leaves the result unverified. The Bus Watchdog goes back to 0 after torque is off, which also
+        clears a tripped one for the next run."""
+        self.torque_off_verified = None
+        off = np.zeros(self.spec.n, dtype=bool)
+        self._set_torque(off)
+        if self._deadman_on or self._tripped.any():
+            self.bus.sync_write(_BUS_WATCHDOG, 1, {i: b"\x00" for i in self.ids})
+            self._deadman_on = False
+        for _ in range(3):
+            back = self.bus.sync_read(self.ids, _TORQUE_ENABLE, 1, fast=False, retries=2)
+            on = [i for i in self.ids if back.data[i] is not None and back.data[i][0]]
+            if not on:
+                self.torque_off_verified = not back.stale
+                return
+            self.bus.sync_write(_TORQUE_ENABLE, 1, {i: b"\x00" for i in on})
+        self.torque_off_verified = False
+
+    # ------------------------------------------------------------------ fail-safe set-up
+    def _clear_watchdog(self, warn: bool) -> None:
+        """Bus Watchdog to 0 on every servo; a tripped one (a run that was killed) is a warning."""
+        res = self.bus.sync_read(self.ids, _BUS_WATCHDOG, 1, fast=False, retries=2)
+        tripped = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints
+                   if res.data[j.servo_id] is not None and res.data[j.servo_id][0] == WATCHDOG_TRIPPED]
+        set_ = [i for i in self.ids if res.data[i] is not None and res.data[i][0]]
+        if set_:
+            self.bus.sync_write(_BUS_WATCHDOG, 1, {i: b"\x00" for i in set_})
+        if tripped and warn:
+            self.warnings.append(f"Bus Watchdog had stopped {', '.join(tripped)}: the last run ended without "
+                                 "closing (killed, or the host hung); cleared")
+
+    def _install_map(self) -> None:
+        """Write the tick's Indirect Address map (`TICK_ITEMS`) and read it back, per servo.
+
+        Servos whose model has no Indirect Addressing, or whose map did not take (torque on: the map is
+        written while arming, torque briefly off), are read the plain way until it does."""
+        want = b"".join(int(a).to_bytes(2, "little") for a in TICK_ITEMS)
+        self._indirect = {}
+        for j in self.spec.joints:
+            ind = getattr(control_table(j.servo), "indirect", None)
+            if ind is None or ind[2] < len(TICK_ITEMS):
+                self._indirect = {}
+                return
+            self._indirect[j.servo_id] = (ind[0], ind[1])
+        starts = {a for a, _ in self._indirect.values()}
+        if len(starts) != 1 or len({d for _, d in self._indirect.values()}) != 1:
+            self._indirect = {}  # mixed layouts: one sync read cannot cover them
+            return
+        addr = starts.pop()
+        res = self.bus.sync_read(self.ids, addr, len(want), fast=False, retries=2)
+        todo = [i for i in self.ids if res.data[i] != want]
+        if todo:
+            self.bus.sync_write(addr, len(want), {i: want for i in todo})
+            res = self.bus.sync_read(self.ids, addr, len(want), fast=False, retries=2)
+        self._mapped = np.array([res.data[i] == want for i in self.ids])
+
     # ------------------------------------------------------------------ tick
     def _read_block(self, require_all: bool = False) -> np.ndarray:
         ids = self.ids
-        res = self.bus.sync_read(ids, *STATE_BLOCK, retries=2 if require_all else None)
+        mapped = bool(self._indirect) and bool(self._mapped.all())
+        if mapped:
+            data_addr = next(iter(self._indirect.values()))[1]
+            res = self.bus.sync_read(ids, data_addr, _TICK_DTYPE.itemsize, retries=2 if require_all else None)
+        else:
+            res = self.bus.sync_read(ids, *STATE_BLOCK, retries=2 if require_all else None)
         stale = np.array([res.data[i] is None for i in ids])
         if stale.all() or (require_all and stale.any()):
             names = [f"{j.name} (ID {j.servo_id})" for j, s in zip(self.spec.joints, stale, strict=True) if s]
             raise CommError(f"no reply from {', '.join(names)} on {self.bus.port_name}")
         ok = ~stale
-        raw = np.frombuffer(b"".join(res.data[i] for i, s in zip(ids, stale, strict=True) if not s), dtype=_BLOCK_DTYPE)
-        self._q[ok] = ((raw["position"] - 2048.0) * RAD_PER_TICK - self._b[ok]) / self._k[ok]
-        self._dq[ok] = raw["velocity"] * RAD_S_PER_VELOCITY_UNIT / self._k[ok]
-        self._effort[ok] = raw["current"] * self._torque_per_unit[ok] * self._k[ok]
-        if res.errors:
+        raw = np.frombuffer(b"".join(res.data[i] for i, s in zip(ids, stale, strict=True) if not s),
+                            dtype=_TICK_DTYPE if mapped else _BLOCK_DTYPE)
+        if mapped:
+            torque = raw["torque"] != 0
+            # a rebooted servo's RAM is back to factory values: its Indirect Addresses point at the data
+            # area itself, which reads as zeros, so its whole block is zero (position 0 included)
+            reboot = ~torque & (raw["position"] == 0) & (raw["velocity"] == 0) & (raw["current"] == 0)
+            expect = self._torque[ok]
+            self._torque_lost[ok] = expect & ~torque
+            self._rebooted[ok] = expect & reboot
+            self._tripped[ok] = raw["watchdog"] == WATCHDOG_TRIPPED
+            self._hw[ok] = raw["hw"]
+            good = ok.copy()
+            good[ok] = ~reboot  # a rebooted servo's block holds no position: keep the last one
+            raw_good = raw[~reboot]
+        else:
+            good, raw_good = ok, raw
+        self._q[good] = ((raw_good["position"] - 2048.0) * RAD_PER_TICK - self._b[good]) / self._k[good]
+        self._dq[good] = raw_good["velocity"] * RAD_S_PER_VELOCITY_UNIT / self._k[good]
+        self._effort[good] = raw_good["current"] * self._torque_per_unit[good] * self._k[good]
+        if res.errors and not mapped:  # the plain block carries no error bits: poll on the Alert flag
             now = time.monotonic()
             for idx, i in enumerate(ids):
                 err = res.errors.get(i, 0)
@@ -262,7 +381,8 @@ class DynamixelRobot(RobotBase):
         return State(t=time.monotonic() - self._t0, q=self._q.copy(), dq=self._dq.copy(), effort=self._effort.copy(),
                      imu=imu if isinstance(imu, Imu) else None,
                      faults=Faults(hardware=self._hw.copy(), comm_errors=self.bus.failed_transactions,
-                                   stale=stale))
+                                   stale=stale, torque_off=self._torque_lost.copy(), rebooted=self._rebooted.copy(),
+                                   watchdog=self._tripped.copy()))
 
     def _write(self, command: Command) -> Command:
         q = np.asarray(command.q, float)
@@ -276,6 +396,10 @@ class DynamixelRobot(RobotBase):
         elif not self._torque.all():
             self._set_torque(np.ones(self.spec.n, dtype=bool))
         ticks = self.q_to_ticks(q)
+        if not self._deadman_on and self.bus_watchdog_s is not None and self._torque.any():
+            units = max(1, min(127, round(self.bus_watchdog_s / 0.02)))
+            self.bus.sync_write(_BUS_WATCHDOG, 1, {i: bytes((units,)) for i in self.ids})
+            self._deadman_on = True
         if command.dq_max is None and not self._profile_set:  # goals only: 4 bytes per servo
             raw = ticks.astype("<i4").tobytes()
             self.bus.sync_write(*_GOAL, {i: raw[4 * k: 4 * k + 4] for k, i in enumerate(self.ids)})
