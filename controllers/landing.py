@@ -37,6 +37,7 @@ class LandingController:
     """
 
     name = "landing"
+    needs_imu = True  # the nets' inputs are the body's orientation: no IMU, no landing (the loop stops)
 
     def __init__(self, policy, drop_height: float | None = None):
         if drop_height is not None and not (np.isfinite(drop_height) and drop_height > 0):

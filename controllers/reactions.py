@@ -125,7 +125,12 @@ class ReactiveController:
             and the gate is not already fed.
         reaction: a name of `REACTIONS`, or a callable features → name (a selector).
         hold_s / blend_s: how long the reaction is held after the alarm clears, then blended back.
+
+    ``needs_imu``: the monitor's XCoM is in the world frame, from the IMU's attitude: a run without one
+    is refused, and one whose IMU goes quiet stops (`felis.loop`).
     """
+
+    needs_imu = True
 
     def __init__(self, base: Controller, monitor: BalanceMonitor,
                  reaction: str | Callable[[np.ndarray], str] = "none", hold_s: float = 1.0, blend_s: float = 0.4):

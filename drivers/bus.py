@@ -40,6 +40,7 @@ import os
 import stat
 import termios
 import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
@@ -167,14 +168,44 @@ def _is_pty(port: str) -> bool:
 
 
 def port_holders(port: str) -> list[str]:
-    """Other processes that have ``port`` open, as ``"PID 123 (felis monitor …)"`` (best effort: /proc)."""
+    """Other processes that hold ``port``, as ``"PID 123 (felis monitor …)"`` (best effort, Linux /proc).
+
+    The holders of its lock (``/proc/locks``) when there are any; else every process with it open."""
     real = os.path.realpath(port)
-    out = []
     me = os.getpid()
-    for pid_dir in glob.glob("/proc/[0-9]*"):
-        pid = int(os.path.basename(pid_dir))
-        if pid == me:
+    pids = [p for p in _lock_holders(real) if p != me] or [p for p in _openers(real) if p != me]
+    out = []
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                cmd = f.read(4096).replace(b"\0", b" ").decode(errors="replace").strip()
+        except OSError:
+            cmd = "?"
+        out.append(f"PID {pid} ({cmd[:100]})")
+    return out
+
+
+def _lock_holders(real: str) -> list[int]:
+    try:
+        st = os.stat(real)
+        with open("/proc/locks") as f:
+            lines = f.read(1 << 20).splitlines()
+    except OSError:
+        return []
+    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    pids = []
+    for line in lines:
+        parts = line.split()
+        if "->" in parts:  # a waiter, not a holder
             continue
+        if len(parts) >= 6 and parts[1] == "FLOCK" and parts[5].lower() == key.lower() and parts[4].isdigit():
+            pids.append(int(parts[4]))
+    return pids
+
+
+def _openers(real: str) -> list[int]:
+    pids = []
+    for pid_dir in glob.glob("/proc/[0-9]*"):
         try:
             fds = os.listdir(f"{pid_dir}/fd")
         except OSError:
@@ -182,18 +213,11 @@ def port_holders(port: str) -> list[str]:
         for fd in fds:
             try:
                 if os.readlink(f"{pid_dir}/fd/{fd}") == real:
+                    pids.append(int(os.path.basename(pid_dir)))
                     break
             except OSError:
                 continue
-        else:
-            continue
-        try:
-            with open(f"{pid_dir}/cmdline", "rb") as f:
-                cmd = f.read(4096).replace(b"\0", b" ").decode(errors="replace").strip()
-        except OSError:
-            cmd = "?"
-        out.append(f"PID {pid} ({cmd[:100]})")
-    return out
+    return pids
 
 
 def in_use_message(port: str) -> str:
@@ -333,6 +357,21 @@ class DynamixelBus:
         if self._port is not None:
             with self._lock:
                 self._call(lambda: self._port.setBaudRate(baud))
+
+    def listen(self, seconds: float, limit: int = 4096) -> bytes:
+        """Bytes that arrive on the port within ``seconds`` without being asked for (a Dynamixel bus sends
+        none): the diagnosis of a port that is something else, e.g. the IMU's."""
+        port = self._need_port()
+        out = bytearray()
+        deadline = time.monotonic() + seconds
+        with self._lock:
+            while time.monotonic() < deadline and len(out) < limit:
+                chunk = self._call(lambda: port.readPort(limit - len(out)))
+                if chunk:
+                    out.extend(chunk)
+                else:
+                    time.sleep(0.005)
+        return bytes(out)
 
     def latency_warning(self) -> str | None:
         """The FTDI latency-timer fix for this port, or None when it is fine (or not an FTDI)."""

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from felis.drivers.bus import DynamixelBus, NoReplyError
+from felis.drivers.bus import CorruptReplyError, DynamixelBus, NoReplyError
 from felis.drivers.controltable import STATE_BLOCK, control_table
 from felis.drivers.imu import apply_mounting
 from felis.errors import CalibrationError, CommError, DescriptionError
@@ -114,12 +114,13 @@ class DynamixelRobot(RobotBase):
     def __init__(self, spec: RobotSpec, port: str, baud: int = 1_000_000, *, calibration: Calibration | None = None,
                  imu_port: str | None = None, bus: DynamixelBus | None = None, retries: int = 1,
                  fast_sync_read: bool = True, hardware_poll_s: float = 0.5,
-                 bus_watchdog_s: float | None = BUS_WATCHDOG_S):
+                 bus_watchdog_s: float | None = BUS_WATCHDOG_S, imu_required: bool = False):
         super().__init__(spec)
         self.bus = bus or DynamixelBus(port, baud, retries=retries, fast_sync_read=fast_sync_read)
         self.ids = [j.servo_id for j in spec.joints]
         self.imu_port = imu_port
         self.imu = None
+        self.imu_required = imu_required
         self.calibration = calibration or Calibration.identity(spec.n)
         self.hardware_poll_s = hardware_poll_s
         self.warnings: list[str] = []
@@ -170,10 +171,12 @@ class DynamixelRobot(RobotBase):
         bus = self.bus
         bus.open()
         missing, wrong = [], []
-        for j in self.spec.joints:
+        for k, j in enumerate(self.spec.joints):
             try:
                 f = bus.ping(j.servo_id, retries=2)
-            except NoReplyError:
+            except (NoReplyError, CorruptReplyError):
+                if k == 0:
+                    self._not_a_bus()
                 missing.append(f"{j.name} (ID {j.servo_id})")
                 continue
             if f.model != j.servo:
@@ -206,11 +209,40 @@ class DynamixelRobot(RobotBase):
         if lat:
             self.warnings.append(lat)
         if self.imu_port and self.spec.sensors.imu:
-            from felis.drivers.imu import ImuReader
-
-            self.imu = ImuReader(self.imu_port)
+            self._open_imu()
         self._t0 = time.monotonic()
         self._read_block(require_all=True)
+
+    def _not_a_bus(self) -> None:
+        """The first servo did not answer: is this port streaming something else (the IMU)? A Dynamixel bus is
+        silent until asked; CommError naming the likely swap when bytes arrive unprompted."""
+        data = self.bus.listen(0.15)
+        if len(data) < 8:
+            return
+        from felis.drivers import imu as imu_mod
+
+        what = ("BNO08x UART-RVC IMU frames" if getattr(imu_mod, "looks_like_rvc", lambda d: False)(data)
+                else f"{len(data)} bytes in 0.15 s that are not Dynamixel replies")
+        raise CommError(f"{self.bus.port_name} sends data unprompted ({what}); a Dynamixel bus is silent until asked: "
+                        "are --port and --imu-port swapped?")
+
+    def _open_imu(self) -> None:
+        """Open the IMU and wait for its first frame: silent or speaking another protocol is a refusal when the
+        controller needs the IMU (``imu_required``), else a warning (the run goes on without orientation)."""
+        from felis.drivers.imu import ImuReader
+
+        self.imu = ImuReader(self.imu_port)
+        wait = getattr(self.imu, "wait_first", None)
+        if wait is None:
+            return
+        try:
+            wait(0.5)
+        except CommError as e:
+            if self.imu_required:
+                self.imu.close()
+                self.imu = None
+                raise
+            self.warnings.append(f"{e}; running without IMU readings")
 
     def _arm(self) -> None:
         bus = self.bus

@@ -18,15 +18,15 @@
 Clocks: ``"sim"`` runs as fast as the backend steps (simulated time only); ``"wall"`` paces ticks
 to real time (needed for hardware, optional for simulation, e.g. servo-in-the-loop or a viewer).
 The watchdog (see `felis.safety`) disarms the robot past its tolerances; any exception from the
-controller, a monitor or the backend disarms it too before propagating. Torque is left off at
-the end of a run unless ``keep_armed`` is set. A fatal `CommError` (the port vanished) ends the
-run at once (``stopped = "comm lost: …"``, also logged as a ``comm_lost`` event). An IMU that stops
-reporting mid-run (``state.imu`` turns None) is an ``imu_lost`` event, and a stop (``"imu lost"``) when
-the controller declares ``needs_imu = True``. A signal (`felis.shutdown`) or Ctrl-C ends the run as
-``"interrupted (SIGTERM)"`` and the like; torque goes off on every way out. The reads before the first
-tick (the state the controller is reset with, before and after arming) follow the watchdog's rule: a
-failed one is tried again up to ``read_fail_tolerance`` times, then raised (a bus under load can drop
-one group read).
+controller, a monitor or the backend disarms it too before propagating. Torque is left off at the end of
+a run unless ``keep_armed`` is set. A fatal `CommError` (the port vanished) ends the run at once
+(``stopped = "comm lost: …"``, also logged as a ``comm_lost`` event). An IMU that stops reporting mid-
+run (``state.imu`` turns None) is an ``imu_lost`` event, and a stop (``"imu lost"``) after
+``SafetyConfig.imu_timeout_s`` when the controller declares ``needs_imu = True``. A signal
+(`felis.shutdown`) or Ctrl-C ends the run as ``"interrupted (SIGTERM)"`` and the like; torque goes off
+on every way out. The reads before the first tick (the state the controller is reset with, before and
+after arming) follow the watchdog's rule: a failed one is tried again up to ``read_fail_tolerance``
+times, then raised (a bus under load can drop one group read).
 
 The report gives the control path's time per tick (read → write, excluding monitors, logging,
 physics and sleep): mean, p99, max; the mean time of monitors + logging; and overruns: with the
@@ -165,7 +165,7 @@ def run_loop(
     stale_ticks = write_failures = 0
     finished = False  # the loop ended by its own rules, not by an exception
     needs_imu = bool(getattr(controller, "needs_imu", False))
-    imu_seen = imu_lost = False
+    imu_seen, imu_lost_at = False, None
     state = _first_read(robot, cfg.read_fail_tolerance)
     try:
         if robot.lifecycle is not Lifecycle.ARMED:
@@ -197,19 +197,19 @@ def run_loop(
                     if log is not None:
                         log.event(state.t, kind, detail=stopped)
                     break
-                had_imu, imu_now = imu_seen, state.imu is not None
-                imu_seen = imu_seen or imu_now
-                if had_imu and not imu_now and not imu_lost:
-                    imu_lost = True
-                    if log is not None:
-                        log.event(state.t, "imu_lost", detail="the IMU stopped reporting")
-                    if needs_imu:
-                        stopped = "imu lost: the IMU stopped reporting and the controller needs it"
+                if state.imu is not None:
+                    if imu_lost_at is not None and log is not None:
+                        log.event(state.t, "imu_back", after_s=round(state.t - imu_lost_at, 4))
+                    imu_seen, imu_lost_at = True, None
+                elif imu_seen:
+                    if imu_lost_at is None:
+                        imu_lost_at = state.t
+                        if log is not None:
+                            log.event(state.t, "imu_lost", detail="the IMU stopped reporting")
+                    if needs_imu and state.t - imu_lost_at >= cfg.imu_timeout_s:
+                        stopped = (f"imu lost: no IMU reading for {state.t - imu_lost_at:.2f} s and {name} needs "
+                                   "one")
                         break
-                elif imu_now and imu_lost:
-                    imu_lost = False
-                    if log is not None:
-                        log.event(state.t, "imu_back")
                 command = layer.filter(controller(state))
             except CommError as e:
                 if e.fatal:  # the port is gone: nothing to hold

@@ -36,11 +36,12 @@ class SafetyConfig:
     read_fail_tolerance: int = 3  # consecutive failed reads tolerated; one more trips
     overrun_tolerance: int = 10  # consecutive overruns tolerated (wall clock only)
     stop_on_hardware_error: bool = True  # a servo reporting a hardware error (e.g. overload) ends the run
+    imu_timeout_s: float = 0.3  # an IMU quiet this long stops a controller that needs one (an event at once)
 
     def __post_init__(self):
         if self.soft_margin < 0 or not 0 < self.max_speed_fraction <= 10:
             raise ValueError("soft_margin must be ≥ 0 and max_speed_fraction in (0, 10]")
-        if self.read_fail_tolerance < 0 or self.overrun_tolerance < 0:
+        if self.read_fail_tolerance < 0 or self.overrun_tolerance < 0 or not self.imu_timeout_s >= 0:
             raise ValueError("watchdog tolerances must be ≥ 0")
 
 

@@ -236,6 +236,12 @@ def run_hardware(ep: Episode) -> EpisodeResult:
         raise ParameterError("video needs the simulation backend (--backend sim)")
     if ep.port is None:
         raise ParameterError("the dxl backend needs --port PATH (see `felis find-port`) or --port virtual")
+    needs_imu = bool(getattr(controller, "needs_imu", False))
+    if needs_imu and not spec.sensors.imu:
+        raise ParameterError(f"{ep.controller} needs an IMU and {spec.name}'s description has none")
+    if needs_imu and ep.port != "virtual" and ep.imu_port is None:
+        raise ParameterError(f"{ep.controller} steers by the IMU: give --imu-port PATH (the BNO08x's serial port; "
+                             "`felis find-port` lists candidates)")
     info = None
     if ep.drop is not None:
         if ep.port != "virtual":
@@ -260,7 +266,8 @@ def run_hardware(ep: Episode) -> EpisodeResult:
                                            drop=ep.drop))
             port, imu_port = vb.port, imu_port or vb.imu_port
         calibration = _connect_checks(ep, spec, port)
-        robot = stack.enter_context(DynamixelRobot(spec, port, ep.baud, imu_port=imu_port, calibration=calibration))
+        robot = stack.enter_context(DynamixelRobot(spec, port, ep.baud, imu_port=imu_port, calibration=calibration,
+                                                   imu_required=needs_imu))
         ep.warnings.extend(robot.warnings)
         log = None
         try:

@@ -1,0 +1,311 @@
+"""Fail safe on every exit path (issue 19), as an operator meets it: `felis` commands run as subprocesses
+against `felis virtual-bus` in its own process (the unmodified SDK on a pseudo-terminal), stopped by
+signals, killed, shared with a second program, or losing a servo; and the loop in-process for the cases
+that need a servo changed mid-run.
+
+After every way out the servos are read back through a fresh client: Torque Enable 0 on all twelve (or,
+after SIGKILL, stopped by their own Bus Watchdog), the log complete with its summary, children gone.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from felis.drivers.bus import DynamixelBus, PortError, port_holders
+from felis.drivers.robot import BUS_WATCHDOG_S, DynamixelRobot
+from felis.drivers.virtual import VirtualBus, spawn
+from felis.loop import run_loop
+from felis.runlog import log_info
+from felis.spec import load_spec
+
+_SCRIPT = Path(sys.executable).with_name("felis")
+FELIS = [str(_SCRIPT)] if _SCRIPT.is_file() else [sys.executable, "-m", "felis.cli.main"]
+BAUD = 1_000_000
+IDS = range(1, 13)
+
+
+def _env() -> dict:
+    env = dict(os.environ, MUJOCO_GL="egl")
+    env.setdefault("FELIS_TIMEOUT_MARGIN_MS", "40")  # a loaded 2-core machine: room for a scheduling hiccup
+    return env
+
+
+def _start(*args: str, cwd: Path) -> subprocess.Popen:
+    return subprocess.Popen([*FELIS, *args], cwd=cwd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def _wait_for_log(proc: subprocess.Popen, log: Path, min_bytes: int = 30_000, timeout: float = 30.0) -> None:
+    """Until the run's log has grown past its first ticks (armed, in the loop)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            out, err = proc.communicate()
+            pytest.fail(f"the run ended early ({proc.returncode}): {out}\n{err}")
+        if log.exists() and log.stat().st_size > min_bytes:
+            return
+        time.sleep(0.05)
+    proc.kill()
+    pytest.fail("the run did not start logging in time")
+
+
+def _servo_items(port: str, name: str) -> list[int]:
+    with DynamixelBus(port, BAUD, retries=3) as b:
+        return [b.read(i, name, raw=True) for i in IDS]
+
+
+@pytest.fixture
+def vbus():
+    """The cat's servos, emulated in their own process (standalone dynamics): the bench's adapter."""
+    with spawn("cat") as vb:
+        yield vb
+
+
+# --------------------------------------------------------------------------------- signals
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_signal_during_a_run_leaves_torque_off_and_a_complete_log(vbus, tmp_path, sig):
+    log = tmp_path / "run.mcap"
+    proc = _start("run", "stand", "--robot", "cat", "--backend", "dxl", "--port", vbus.port, "--duration", "30",
+                  "--log", str(log), cwd=tmp_path)
+    _wait_for_log(proc, log)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 130, (out, err)
+    assert f"stopped: interrupted ({sig.name})" in out
+    assert "torque off: read back as 0 on every servo" in out
+    assert _servo_items(vbus.port, "torque_enable") == [0] * 12
+    assert _servo_items(vbus.port, "bus_watchdog") == [0] * 12  # the deadman cleared for the next run
+    info = log_info(log)
+    assert info["summary"]["run"]["stopped"] == f"interrupted ({sig.name})"
+    assert info["events"].get("interrupted") == 1 and info["events"].get("torque_off") == 1
+
+
+def test_sigterm_mid_sysid_recording_leaves_torque_off(vbus, tmp_path):
+    out_file = tmp_path / "fit.json"
+    proc = _start("sysid", "--robot", "cat", "--port", vbus.port, "--joints", "tail_pitch", "--yes",
+                  "--out", str(out_file), cwd=tmp_path)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not port_holders(vbus.port):  # until sysid holds the port
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.1)
+    time.sleep(2.5)  # connected, armed, into the excitation (one joint records for longer than this)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 130, (out, err)
+    assert "interrupted (SIGTERM)" in err
+    assert not out_file.exists()
+    assert _servo_items(vbus.port, "torque_enable") == [0] * 12
+
+
+def test_sigterm_on_a_virtual_port_run_stops_its_bus_child(tmp_path):
+    proc = _start("run", "stand", "--robot", "cat", "--backend", "dxl", "--port", "virtual", "--duration", "30",
+                  "--log", str(tmp_path / "v.mcap"), cwd=tmp_path)
+    _wait_for_log(proc, tmp_path / "v.mcap")
+    children = _children(proc.pid)
+    assert children, "the run has its virtual-bus child"
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=20)
+    assert proc.returncode == 130
+    for pid in children:
+        assert not _alive(pid), f"virtual-bus child {pid} orphaned"
+
+
+def test_sigkill_of_a_virtual_port_run_takes_its_bus_child_down(tmp_path):
+    proc = _start("run", "stand", "--robot", "cat", "--backend", "dxl", "--port", "virtual", "--duration", "30",
+                  "--log", str(tmp_path / "v.mcap"), cwd=tmp_path)
+    _wait_for_log(proc, tmp_path / "v.mcap")
+    children = _children(proc.pid)
+    proc.kill()
+    proc.communicate(timeout=20)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(_alive(p) for p in children):
+        time.sleep(0.1)
+    assert not any(_alive(p) for p in children)
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as f:
+            return [int(x) for x in f.read().split()]
+    except OSError:
+        return []
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ", 1)[1][0] != "Z"
+    except OSError:
+        return False
+
+
+# --------------------------------------------------------------------------------- SIGKILL: the deadman
+def test_sigkill_leaves_the_servos_stopped_by_their_bus_watchdog(vbus, tmp_path):
+    """SIGKILL cannot be caught: the servos' own Bus Watchdog stops them BUS_WATCHDOG_S after the host's
+    last packet. The cat was trotting; a moment later every servo holds still with torque on, its
+    watchdog reading -1 (tripped), and the emulator measured each trip within the stated time."""
+    log = tmp_path / "trot.mcap"
+    proc = _start("run", "step-in-place", "--robot", "cat", "--backend", "dxl", "--port", vbus.port,
+                  "--duration", "30", "--log", str(log), cwd=tmp_path)
+    _wait_for_log(proc, log, min_bytes=60_000)
+    proc.kill()
+    proc.communicate(timeout=20)
+    time.sleep(3 * BUS_WATCHDOG_S)
+    with DynamixelBus(vbus.port, BAUD, retries=3) as b:
+        assert [b.read(i, "bus_watchdog", raw=True) for i in IDS] == [0xFF] * 12
+        assert [b.read(i, "torque_enable", raw=True) for i in IDS] == [1] * 12  # holding, not limp
+        p0 = [b.read(i, "present_position", raw=True) for i in IDS]
+        time.sleep(0.3)
+        p1 = [b.read(i, "present_position", raw=True) for i in IDS]
+        assert p0 == p1  # stopped
+        goals = [b.read(i, "goal_position", raw=True) for i in IDS]
+        assert goals == p1  # holding where the watchdog caught them
+    trips = vbus.watchdog_trips() if hasattr(vbus, "watchdog_trips") else None
+    if trips is not None:
+        assert len(trips) == 12 and all(dt <= BUS_WATCHDOG_S + 0.05 for _, dt in trips), trips
+
+
+def test_the_next_run_clears_a_tripped_bus_watchdog_with_a_warning(vbus, tmp_path):
+    log = tmp_path / "a.mcap"
+    proc = _start("run", "stand", "--robot", "cat", "--backend", "dxl", "--port", vbus.port, "--duration", "30",
+                  "--log", str(log), cwd=tmp_path)
+    _wait_for_log(proc, log)
+    proc.kill()
+    proc.communicate(timeout=20)
+    time.sleep(3 * BUS_WATCHDOG_S)
+    proc = _start("run", "stand", "--robot", "cat", "--backend", "dxl", "--port", vbus.port, "--duration", "1",
+                  cwd=tmp_path)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, (out, err)
+    assert "Bus Watchdog had stopped" in out and "cleared" in out
+    assert _servo_items(vbus.port, "bus_watchdog") == [0] * 12
+
+
+# --------------------------------------------------------------------------------- a second program
+def test_a_second_program_on_the_port_is_refused_and_the_run_is_unaffected(vbus, tmp_path):
+    """20 attempts to open the port while a run holds it: each refused with one line naming the run's
+    PID, none touching the line; the run ends by its duration with no read failure or corrupt reply."""
+    proc = _start("run", "stand", "--robot", "cat", "--backend", "dxl", "--port", vbus.port, "--duration", "6",
+                  "--log", str(tmp_path / "r.mcap"), "--json", cwd=tmp_path)
+    _wait_for_log(proc, tmp_path / "r.mcap", min_bytes=10_000)
+    refused = 0
+    for _ in range(20):
+        with pytest.raises(PortError) as e:
+            DynamixelBus(vbus.port, BAUD).open()
+        assert f"in use by PID {proc.pid}" in str(e.value) and "\n" not in str(e.value)
+        refused += 1
+        time.sleep(0.05)
+    cli = subprocess.run([*FELIS, "read", "1", "present_position", "--port", vbus.port], env=_env(),
+                         capture_output=True, text=True, timeout=60)
+    assert cli.returncode == 1 and cli.stdout == ""
+    assert cli.stderr.count("\n") == 1 and f"in use by PID {proc.pid}" in cli.stderr
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, (out, err)
+    import json
+
+    run = json.loads(out)["run"]
+    assert refused == 20
+    assert run["stopped"] == "duration"
+    assert run["read_failures"] == 0 and run["stale_ticks"] == 0
+    assert run["comm"]["corrupt"] == 0 and run["comm"]["timeouts"] == 0
+
+
+# --------------------------------------------------------------------------------- servos that stop following
+@pytest.fixture
+def cat_bus():
+    with VirtualBus.for_robot("cat", baud=BAUD) as vb:
+        yield vb
+
+
+def _run_with(cat_bus, action, at_tick: int = 30, duration: float = 2.0):
+    spec = load_spec("cat")
+    ticks = [0]
+
+    def monitor(state, command):
+        ticks[0] += 1
+        if ticks[0] == at_tick:
+            action()
+
+    with DynamixelRobot(spec, cat_bus.port, BAUD) as robot:
+        report = run_loop(robot, _Hold(), duration=duration, clock="wall", rate_hz=50, monitors=[monitor])
+        verified = robot.torque_off_verified
+    return report, verified
+
+
+class _Hold:
+    name = "hold"
+
+    def reset(self, spec, state):
+        self.q = state.q.copy()
+
+    def __call__(self, state):
+        from felis.hal import Command
+
+        return Command(q=self.q)
+
+
+def test_a_servo_that_reboots_mid_run_stops_the_run_naming_it(cat_bus):
+    report, verified = _run_with(cat_bus, lambda: cat_bus.servo(3).handle(_reboot_packet(3)))
+    assert report.stopped.startswith("torque lost: fr_roll (ID 3) rebooted"), report.stopped
+    assert not report.ok and verified
+    assert [cat_bus.servo(i).get("torque_enable") for i in IDS] == [0] * 12
+
+
+def test_torque_switched_off_elsewhere_stops_the_run_naming_the_joint(cat_bus):
+    report, _ = _run_with(cat_bus, lambda: cat_bus.servo(7).set("torque_enable", 0))
+    name = load_spec("cat").joints[6].name
+    assert report.stopped.startswith(f"torque lost: {name} (ID 7) switched off"), report.stopped
+
+
+def test_a_stalled_host_trips_the_bus_watchdog_and_the_run_says_so(cat_bus):
+    report, verified = _run_with(cat_bus, lambda: time.sleep(4 * BUS_WATCHDOG_S))
+    assert report.stopped.startswith("bus watchdog:"), report.stopped
+    assert verified
+    assert [cat_bus.servo(i).get("bus_watchdog") for i in IDS] == [0] * 12  # cleared on the way out
+
+
+def test_a_normal_run_ends_with_torque_off_read_back_and_the_watchdog_cleared(cat_bus):
+    report, verified = _run_with(cat_bus, lambda: None, duration=0.5)
+    assert report.stopped == "duration" and verified is True
+    assert [cat_bus.servo(i).get("bus_watchdog") for i in IDS] == [0] * 12
+    assert report.comm["timeouts"] == 0
+
+
+def _reboot_packet(dxl_id: int) -> bytes:
+    from felis.drivers import protocol as P
+
+    return P.instruction(dxl_id, P.REBOOT)
+
+
+# --------------------------------------------------------------------------------- IMU
+def test_a_controller_that_needs_the_imu_is_refused_without_one(vbus, tmp_path):
+    r = subprocess.run([*FELIS, "run", "balance", "--robot", "cat", "--backend", "dxl", "--port", vbus.port],
+                       cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr.count("\n") == 1 and "--imu-port" in r.stderr
+
+
+def test_the_imu_port_given_as_the_bus_is_named_as_swapped(tmp_path):
+    with spawn("cat", sim=True) as vb:
+        r = subprocess.run([*FELIS, "run", "stand", "--robot", "cat", "--backend", "dxl", "--port", vb.imu_port,
+                            "--imu-port", vb.port, "--duration", "1"], cwd=tmp_path, env=_env(),
+                           capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert r.stderr.count("\n") == 1 and "swapped" in r.stderr
+
+
+def test_torque_is_read_back_on_close(cat_bus):
+    with DynamixelRobot(load_spec("cat"), cat_bus.port, BAUD) as robot:
+        robot.arm()
+        assert all(cat_bus.servo(i).get("torque_enable") == 1 for i in IDS)
+    assert robot.torque_off_verified is True
+    assert np.all([cat_bus.servo(i).get("torque_enable") == 0 for i in IDS])
