@@ -112,6 +112,15 @@ class LoopReport:
     def interrupted(self) -> bool:
         return self.stopped.startswith("interrupted")
 
+    def raise_if_interrupted(self) -> LoopReport:
+        """Raise `felis.shutdown.Interrupted` again when a signal ended this run (torque is already off):
+        for callers that run many episodes, so Ctrl-C or SIGTERM stops them all, not just the current one."""
+        if self.interrupted:
+            from felis.shutdown import Interrupted
+
+            raise Interrupted(self.stopped[len("interrupted ("):-1] or "SIGINT")
+        return self
+
     def as_dict(self) -> dict:
         return {
             "robot": self.robot, "controller": self.controller, "clock": self.clock,

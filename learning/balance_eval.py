@@ -122,7 +122,7 @@ class PushSim:
         fall = FallDetector(robot, tuple(self.spec.sensors.contacts))
         tr = _Trace(ctl) if trace else None
         monitors = [Pusher(robot, p), fall, *([tr] if tr is not None else []), *monitors]
-        run_loop(robot, ctl, duration=p.t_s + FALL_WINDOW_S, monitors=monitors, keep_armed=True)
+        run_loop(robot, ctl, duration=p.t_s + FALL_WINDOW_S, monitors=monitors, keep_armed=True).raise_if_interrupted()
         return _outcome(p, reaction, ctl, fall, tr)
 
     def monitor_defaults(self) -> dict:
@@ -159,7 +159,7 @@ def run_push_virtual(p: Push, reaction: str | Callable = "none", *, rate_hz: flo
             ctl = ReactiveController(_base(p.phase), BalanceMonitor(body, **(monitor or {})), reaction)
             tr = _Trace(ctl) if trace else None
             run_loop(robot, ctl, duration=p.t_s + FALL_WINDOW_S, rate_hz=rate_hz, clock="wall",
-                     monitors=[test] + ([tr] if tr is not None else []))
+                     monitors=[test] + ([tr] if tr is not None else [])).raise_if_interrupted()
     fall = test.detector
     fall.t = test.fall_t
     return _outcome(p, reaction, ctl, fall, tr)

@@ -155,7 +155,7 @@ def record_sim(segments: Sequence[tuple[float, float, float]], name: str = "sim"
                          g.frequency_hz if g.stepping else 0.0, g.lift, g.stepping, tilt))
 
         report = run_loop(robot, controller, duration=controller.end_s, rate_hz=rate_hz, clock="sim",
-                          monitors=[record])
+                          monitors=[record]).raise_if_interrupted()
     if not report.ok or report.stopped != "duration":
         raise PhaseError(f"recording {name!r} stopped early: {report.stopped}")
     a = np.array(rows, dtype=float)

@@ -150,7 +150,7 @@ class LandingSim:
         diverged = False
         try:
             run_loop(robot, controller, duration=info.fall_time + MARGIN_S if duration is None else duration,
-                     rate_hz=RATE_HZ, monitors=monitors, keep_armed=True)
+                     rate_hz=RATE_HZ, monitors=monitors, keep_armed=True).raise_if_interrupted()
         except SimulationError:
             diverged = True
         finally:

@@ -128,7 +128,7 @@ def standing_waist_height(robot: MujocoRobot, settle_s: float = 1.5) -> float:
     robot.reset()
     set_pose(robot, robot.spec.pose("stand"))
     drop(robot, 0.001)
-    report = run_loop(robot, make_controller("stand"), duration=settle_s, keep_armed=True)
+    report = run_loop(robot, make_controller("stand"), duration=settle_s, keep_armed=True).raise_if_interrupted()
     height = report.final_state.height if report.final_state is not None else None
     if height is None:
         raise ParameterError(f"{robot.spec.name} has no waist height sensor (sensors.height)")

@@ -309,3 +309,44 @@ def test_torque_is_read_back_on_close(cat_bus):
         assert all(cat_bus.servo(i).get("torque_enable") == 1 for i in IDS)
     assert robot.torque_off_verified is True
     assert np.all([cat_bus.servo(i).get("torque_enable") == 0 for i in IDS])
+
+
+# --------------------------------------------------------------------------------- the shutdown path itself
+def test_sigterm_and_sighup_become_interrupted_once():
+    from felis.shutdown import Interrupted, received, signals
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        with pytest.raises(Interrupted) as e, signals():
+            os.kill(os.getpid(), sig)
+            time.sleep(1)  # the handler runs at the next bytecode
+        assert e.value.signame == sig.name and isinstance(e.value, KeyboardInterrupt)
+    with signals():  # a second signal while unwinding does not cut the clean-up short
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+        except Interrupted:
+            os.kill(os.getpid(), signal.SIGINT)  # e.g. an impatient second Ctrl-C
+            time.sleep(0.05)
+        assert received() == ["SIGTERM", "SIGINT"]
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handlers restored
+
+
+def test_an_interrupted_episode_stops_a_batch_of_them():
+    from felis.controllers import make_controller
+    from felis.shutdown import Interrupted
+    from felis.sim import MujocoRobot
+
+    class _Stop:
+        def __init__(self):
+            self.n = 0
+
+        def __call__(self, state, command):
+            self.n += 1
+            if self.n == 5:
+                raise Interrupted("SIGTERM")
+
+    with MujocoRobot(load_spec("cat")) as robot:
+        report = run_loop(robot, make_controller("stand"), duration=1.0, monitors=[_Stop()])
+        assert report.stopped == "interrupted (SIGTERM)" and report.interrupted and report.ok
+        with pytest.raises(Interrupted, match="SIGTERM"):
+            report.raise_if_interrupted()
