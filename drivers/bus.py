@@ -373,6 +373,18 @@ class DynamixelBus:
                     time.sleep(0.005)
         return bytes(out)
 
+    def check_quiet(self, seconds: float = 0.05) -> None:
+        """CommError when the port sends data unprompted (a Dynamixel bus is silent until asked): the operator
+        gave the IMU's port, or another device's, as the bus; the message names a BNO08x when it is one."""
+        data = self.listen(seconds)
+        if len(data) < 8:
+            return
+        from felis.drivers.imu import looks_like_rvc
+
+        what = "BNO08x UART-RVC IMU frames" if looks_like_rvc(data) else f"{len(data)} bytes that no one asked for"
+        raise CommError(f"{self.port_name} sends data unprompted ({what}); a Dynamixel bus is silent until asked: "
+                        "are --port and --imu-port swapped?")
+
     def latency_warning(self) -> str | None:
         """The FTDI latency-timer fix for this port, or None when it is fine (or not an FTDI)."""
         ms = latency_timer_ms(self.port_name)

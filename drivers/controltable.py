@@ -17,6 +17,16 @@ Per-model differences (``shared/reference/dynamixel.md``): XL330-M288-T has Curr
 Current in 1 mA units and no 4.5 Mbps; XL430-W250-T has no current items, its address 126 is
 Present Load (0.1 %), and no current-based operating modes; XM430-W350-T has current in 2.69 mA
 units. Defaults and ranges follow the ROBOTIS e-Manual; the few we could not check are marked.
+
+Indirect Addressing (`ControlTable.indirect` = Indirect Address 1's address, Indirect Data 1's address,
+count): ``indirect_address_n`` (2 bytes, RAM) holds the address that ``indirect_data_n`` (1 byte)
+stands for; a read or write of the data byte acts on that address, with its access and range, so
+scattered items can be gathered into one block for one sync read. Valid targets are the RAM area,
+64…661 (e-Manual); the factory value of entry n is 224 + n − 1 (the data byte itself). The first bank
+only: XL330-M288-T has entries 1–20 (address 168…206, data 224…243), XL430-W250-T and XM430-W350-T
+1–28 (168…222, data 224…251; their second bank at 578/634 is not modelled). Addresses and counts are
+those of the SDK's shipped tables (``dynamixel_easy_sdk/control_table/*.model``: ``Indirect Address 1``
+168, ``Indirect Data 1`` 224; the XL330's read block starts at entry 7, 180/230) and the e-Manual.
 """
 
 from __future__ import annotations
@@ -115,6 +125,7 @@ class ControlTable:
     items: dict[str, Item]
     baud_rates: dict[int, int]
     operating_modes: dict[int, str]
+    indirect: tuple[int, int, int] | None = None  # (Indirect Address 1, Indirect Data 1, count) (module doc)
     _by_addr: dict[int, Item] = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
@@ -157,9 +168,14 @@ def normalize_name(name: str) -> str:
     return re.sub(r"[\s\-]+", "_", name.strip()).lower()
 
 
+INDIRECT_ADDRESS, INDIRECT_DATA = 168, 224  # Indirect Address 1 / Indirect Data 1 on every X-series model here
+INDIRECT_TARGETS = (EEPROM_END, 661)  # what an Indirect Address may point at: the RAM area
+
+
 def _table(model: str, *, firmware: int, current_unit_ma: float | None, baud_codes: range, modes: tuple[int, ...],
            voltage: tuple[int, int, int, int], temperature_limit: int, velocity_limit: tuple[int, int],
-           current_limit: int | None, gains: tuple[int, int, int], velocity_gains: tuple[int, int]) -> ControlTable:
+           current_limit: int | None, gains: tuple[int, int, int], velocity_gains: tuple[int, int],
+           indirect: int = 0) -> ControlTable:
     s = SERVOS[model]
     vmax_default, vmax_hi = velocity_limit
     max_v, min_v, v_lo, v_hi = voltage
@@ -236,22 +252,27 @@ def _table(model: str, *, firmware: int, current_unit_ma: float | None, baud_cod
         Item("present_input_voltage", 144, 2, "R", (max_v + min_v) // 2, 0, 65535, "V", 0.1),
         Item("present_temperature", 146, 1, "R", 30, 0, 255, "°C"),
     ]
-    return ControlTable(model, s.model_number, {it.name: it for it in items}, bauds, mode_names)
+    lo, hi = INDIRECT_TARGETS
+    items += [Item(f"indirect_address_{n}", INDIRECT_ADDRESS + 2 * (n - 1), 2, "RW", INDIRECT_DATA + n - 1, lo, hi)
+              for n in range(1, indirect + 1)]
+    items += [Item(f"indirect_data_{n}", INDIRECT_DATA + n - 1, 1, "RW", 0, 0, 255) for n in range(1, indirect + 1)]
+    return ControlTable(model, s.model_number, {it.name: it for it in items}, bauds, mode_names,
+                        indirect=(INDIRECT_ADDRESS, INDIRECT_DATA, indirect) if indirect else None)
 
 
 CONTROL_TABLES: dict[str, ControlTable] = {
     "XL330-M288-T": _table("XL330-M288-T", firmware=52, current_unit_ma=1.0, baud_codes=range(0, 7),
                            modes=(0, 1, 3, 4, 5, 16), voltage=(70, 35, 31, 70), temperature_limit=70,
                            velocity_limit=(445, 2047), current_limit=1750, gains=(0, 0, 400),
-                           velocity_gains=(1000, 180)),
+                           velocity_gains=(1000, 180), indirect=20),
     "XL430-W250-T": _table("XL430-W250-T", firmware=46, current_unit_ma=None, baud_codes=range(0, 8),
                            modes=(1, 3, 4, 16), voltage=(140, 60, 60, 140), temperature_limit=72,
                            velocity_limit=(265, 1023), current_limit=None, gains=(4000, 0, 640),
-                           velocity_gains=(1000, 100)),
+                           velocity_gains=(1000, 100), indirect=28),
     "XM430-W350-T": _table("XM430-W350-T", firmware=46, current_unit_ma=2.69, baud_codes=range(0, 8),
                            modes=(0, 1, 3, 4, 5, 16), voltage=(160, 95, 95, 160), temperature_limit=80,
                            velocity_limit=(200, 1023), current_limit=1193, gains=(0, 0, 800),
-                           velocity_gains=(1920, 100)),
+                           velocity_gains=(1920, 100), indirect=28),
 }
 _BY_NUMBER = {t.model_number: t for t in CONTROL_TABLES.values()}
 

@@ -418,6 +418,30 @@ def _open_error(port: str, e: Exception) -> CommError:
     return CommError(f"IMU port {port}: {why} ({detail})")
 
 
+class ImuSilentError(CommError):
+    """The IMU's port delivered no byte at all in the time allowed."""
+
+
+class ImuProtocolError(CommError):
+    """The IMU's port delivers bytes, but no BNO08x UART-RVC frame among them."""
+
+
+DYNAMIXEL_HEADER = b"\xff\xff\xfd\x00"
+
+
+def looks_like_rvc(data: bytes) -> bool:
+    """Whether a sample of received bytes holds UART-RVC frames (two or more with valid checksums):
+    the diagnosis of an IMU's port given where a Dynamixel bus was expected."""
+    parser = RvcParser()
+    parser.feed(bytes(data))
+    return parser.frames >= 2
+
+
+def looks_like_dynamixel(data: bytes) -> bool:
+    """Whether a sample of received bytes holds Dynamixel Protocol 2.0 packets (their FF FF FD 00 header)."""
+    return DYNAMIXEL_HEADER in bytes(data)
+
+
 def frames_between(prev_index: int, index: int, dt_rx: float, rate_hz: float) -> int:
     """Samples elapsed between two frames: the index difference mod 256, plus 256 per wrap that
     the receive-time difference ``dt_rx`` (s) shows (a silence longer than ~1.28 s at 100 Hz).
@@ -431,9 +455,10 @@ class ImuReader:
 
     Keeps the latest frame, its receive time (``time.monotonic``), a body-rate estimate from the
     last two frames and the accelerometer's sum since the previous `read` (see the module docstring).
-    Counters: ``frames``, ``bad_checksums``, ``dropped_bytes``, ``lost_frames`` (index gaps). If the
-    port fails while running, the thread stops, ``error`` holds a one-line message, ``latest()`` keeps
-    returning the last reading and ``stale()`` is true.
+    Counters: ``frames``, ``bad_checksums``, ``dropped_bytes``, ``lost_frames`` (index gaps),
+    ``bytes_received``. If the port fails while running (or anything in the thread raises), the thread
+    stops, ``error`` holds a one-line message, ``latest()`` keeps returning the last reading and
+    ``stale()`` is true. `wait_first` tells a silent port from one that speaks another protocol.
 
     ``rate_hz`` is the sensor's sample rate (100 Hz in RVC mode), used as the Δt of the body rate.
     Raises `CommError` naming the port if it cannot be opened.
@@ -450,6 +475,8 @@ class ImuReader:
         self._t_rx = -math.inf
         self._gyro: np.ndarray | None = None
         self._accel_sum, self._accel_n = np.zeros(3), 0  # frames since the previous read()
+        self.bytes_received = 0
+        self._sample = bytearray()  # the first bytes received (diagnosis of a port that is not an IMU)
         self._stop = threading.Event()
         try:
             self._ser = serial.Serial(port, baud, timeout=0.05)
@@ -477,14 +504,18 @@ class ImuReader:
         while not self._stop.is_set():
             try:
                 data = ser.read(ser.in_waiting or 1)
-            except (serial.SerialException, OSError, TypeError, ValueError) as e:
+                if data:
+                    self.bytes_received += len(data)
+                    if len(self._sample) < 512:
+                        self._sample += data[: 512 - len(self._sample)]
+                    self._receive(data, time.monotonic())
+            except Exception as e:  # noqa: BLE001 - the thread never dies silently: kept for stale()/check()
                 if not self._stop.is_set():
-                    self.error = f"IMU port {self.port}: lost ({' '.join(str(e).split())})"
+                    kind = "lost" if isinstance(e, serial.SerialException | OSError) else type(e).__name__
+                    self.error = f"IMU port {self.port}: {kind} ({' '.join(str(e).split())})"
                 with self._lock:
                     self._lock.notify_all()
                 return
-            if data:
-                self._receive(data, time.monotonic())
 
     def _receive(self, data: bytes, t: float) -> None:
         frames = self._parser.feed(data)
@@ -550,6 +581,26 @@ class ImuReader:
                     break
                 self._lock.wait(left)
             return self.frames >= frames
+
+    def wait_first(self, timeout_s: float = 0.5) -> None:
+        """Block until the first reading (two frames: orientation and a rate) has arrived.
+
+        Raises `ImuSilentError` when the port delivered nothing in ``timeout_s`` (unpowered, not in RVC
+        mode, another baud rate, or the bus's port, which is silent until asked), `ImuProtocolError` when
+        bytes arrived but no RVC frame (a Dynamixel bus is named as such), `CommError` when the port failed.
+        """
+        if self.wait(2, timeout_s):
+            return
+        if self.error is not None:
+            raise CommError(self.error)
+        if self.bytes_received == 0:
+            raise ImuSilentError(f"IMU on {self.port} sent nothing in {timeout_s:g} s: is it powered and in UART-RVC "
+                                 "mode (P0 high) at 115200 bps? (or are --port and --imu-port swapped?)")
+        sample = bytes(self._sample)
+        what = ("Dynamixel packets: this is the servo bus; are --port and --imu-port swapped?"
+                if looks_like_dynamixel(sample) else "no 0xAA 0xAA header with a valid checksum")
+        raise ImuProtocolError(f"{self.port} answers, but not with BNO08x UART-RVC frames ({self.bytes_received} "
+                               f"bytes, {what})")
 
     def close(self) -> None:
         """Stop the thread and close the port (idempotent)."""

@@ -214,17 +214,8 @@ class DynamixelRobot(RobotBase):
         self._read_block(require_all=True)
 
     def _not_a_bus(self) -> None:
-        """The first servo did not answer: is this port streaming something else (the IMU)? A Dynamixel bus is
-        silent until asked; CommError naming the likely swap when bytes arrive unprompted."""
-        data = self.bus.listen(0.15)
-        if len(data) < 8:
-            return
-        from felis.drivers import imu as imu_mod
-
-        what = ("BNO08x UART-RVC IMU frames" if getattr(imu_mod, "looks_like_rvc", lambda d: False)(data)
-                else f"{len(data)} bytes in 0.15 s that are not Dynamixel replies")
-        raise CommError(f"{self.bus.port_name} sends data unprompted ({what}); a Dynamixel bus is silent until asked: "
-                        "are --port and --imu-port swapped?")
+        """The first servo did not answer: is this port streaming something else (the IMU)?"""
+        self.bus.check_quiet(0.15)
 
     def _open_imu(self) -> None:
         """Open the IMU and wait for its first frame: silent or speaking another protocol is a refusal when the

@@ -195,7 +195,10 @@ SPIN_S = 0.0003  # wire-time: sleep until this long before a reply is due, then 
 ID, BAUD, RETURN_DELAY, DRIVE_MODE, OPERATING_MODE, HOMING_OFFSET, MOVING_THRESHOLD = 7, 8, 9, 10, 11, 20, 24
 CURRENT_LIMIT, VELOCITY_LIMIT, MAX_POSITION, MIN_POSITION, SHUTDOWN = 38, 44, 48, 52, 63
 TORQUE_ENABLE, STATUS_RETURN_LEVEL, REGISTERED, HARDWARE_ERROR, POSITION_P = 64, 68, 69, 70, 84
-GOAL_CURRENT, GOAL_VELOCITY, PROFILE_VELOCITY, GOAL_POSITION = 102, 104, 112, 116
+BUS_WATCHDOG, GOAL_PWM, GOAL_CURRENT, GOAL_VELOCITY, PROFILE_VELOCITY, GOAL_POSITION = 98, 100, 102, 104, 112, 116
+GOALS = frozenset((GOAL_PWM, GOAL_CURRENT, GOAL_VELOCITY, GOAL_POSITION))  # refused while the Bus Watchdog is tripped
+WATCHDOG_UNIT_S = 0.02
+WATCHDOG_ERROR = 0xFF  # Bus Watchdog reads -1 once tripped
 REALTIME_TICK, MOVING, PRESENT_CURRENT, PRESENT_POSITION, PRESENT_VOLTAGE, PRESENT_TEMPERATURE = \
     120, 122, 126, 132, 144, 146
 DYNAMIC_START = 120  # items from here on are refreshed from the dynamics before a read
@@ -369,6 +372,10 @@ class VirtualServo:
         self.clock = clock
         self.external = False  # True: the horn is driven from outside (simulation); no own dynamics
         self.revision = 0  # +1 whenever memory changes through an instruction (the sim thread watches it)
+        self.indirect = self.table.indirect  # (Indirect Address 1, Indirect Data 1, count) or None
+        self._targets: list[int] = []  # per Indirect Data byte: the address it stands for
+        self._last_rx = clock()  # when this servo last heard an instruction packet (Bus Watchdog)
+        self.torque_on_at: float | None = None  # when torque first came on (timed faults count from it)
         self._registered: tuple[int, bytes] | None = None
         self._latched = False
         self._theta = 0.0  # horn angle (rad)
@@ -405,6 +412,8 @@ class VirtualServo:
         self._latched = False
         self._omega = self._torque = 0.0
         self._cache_settings()
+        self._map_indirect()
+        self._last_rx = self.clock()
         self._refresh()
         _I32.pack_into(mem, GOAL_POSITION, _I32.unpack_from(mem, PRESENT_POSITION)[0])
         self.revision += 1
@@ -419,11 +428,22 @@ class VirtualServo:
         self._kp = stall * (_U16.unpack_from(mem, POSITION_P)[0] / 128.0) * (TICKS_PER_REV / (2.0 * math.pi)) \
             / PWM_LIMIT
 
+    def _map_indirect(self) -> None:
+        """The address each Indirect Data byte stands for, from the Indirect Address items."""
+        if self.indirect is not None:
+            a0, _, n = self.indirect
+            self._targets = [_U16.unpack_from(self.mem, a0 + 2 * k)[0] for k in range(n)]
+
+    def _indirect_overlap(self, addr: int, length: int) -> bool:
+        ind = self.indirect
+        return ind is not None and addr < ind[1] + ind[2] and addr + length > ind[1]
+
     def get(self, name: str) -> int:
         """Raw value of a control-table item (present items brought up to date first)."""
         it = self.table.item(name)
-        if it.addr >= DYNAMIC_START:
-            self._advance()
+        if self._indirect_overlap(it.addr, it.size):
+            return it.decode(self.read_block(it.addr, it.size)[1])
+        self._advance()  # present items, and a Bus Watchdog that is due
         return it.decode(self.mem[it.addr: it.addr + it.size])
 
     def set(self, name: str, raw: int) -> None:
@@ -503,13 +523,51 @@ class VirtualServo:
     # -------------------------------------------------------------- standalone dynamics
     def _advance(self) -> None:
         """Bring the horn to now and refresh the present items (a simulated horn is published instead)."""
+        if self.mem[BUS_WATCHDOG]:
+            self.check_watchdog()
         if not self.external:
             self._integrate()
             self._refresh()
 
-    def _integrate(self) -> None:
-        """Standalone dynamics: exact integration over the time elapsed since the last access."""
-        now = self.clock()
+    # -------------------------------------------------------------- Bus Watchdog
+    def heard(self) -> None:
+        """An instruction packet for this servo (its ID or broadcast) arrived: the Bus Watchdog restarts
+        (after a trip that was already due, which a late packet does not undo)."""
+        if self.mem[BUS_WATCHDOG]:
+            self.check_watchdog()
+        self._last_rx = self.clock()
+
+    def check_watchdog(self, now: float | None = None) -> float | None:
+        """Trip the Bus Watchdog if it is due (module doc). Returns the time from the last packet to the
+        trip when it trips now, else None. A standalone horn is integrated up to the trip instant."""
+        wd = self.mem[BUS_WATCHDOG]
+        if not 1 <= wd <= 127 or not self.mem[TORQUE_ENABLE]:
+            return None
+        now = self.clock() if now is None else now
+        due = self._last_rx + wd * WATCHDOG_UNIT_S
+        if now < due:
+            return None
+        if not self.external:
+            self._integrate(due)  # the horn moved under its last goal until the trip
+        mem = self.mem
+        pos = CENTRE + self._s * round(self._theta / RAD_PER_TICK) + self._homing
+        _I32.pack_into(mem, GOAL_POSITION, pos)  # stop: hold where it is
+        _I32.pack_into(mem, GOAL_VELOCITY, 0)
+        if not self.external:
+            self._theta = self._s * (pos - CENTRE - self._homing) * RAD_PER_TICK
+            self._omega = self._torque = 0.0
+        mem[BUS_WATCHDOG] = WATCHDOG_ERROR
+        self.revision += 1
+        return (due if not self.external else now) - self._last_rx
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return self.mem[BUS_WATCHDOG] == WATCHDOG_ERROR
+
+    def _integrate(self, until: float | None = None) -> None:
+        """Standalone dynamics: exact integration over the time elapsed since the last access (or up to
+        ``until``)."""
+        now = self.clock() if until is None else until
         dt = now - self._t
         self._t = now
         if self.external or dt <= 0.0:
@@ -611,11 +669,21 @@ class VirtualServo:
         """(error, data) of a read of ``length`` bytes at ``addr`` (data empty on error)."""
         if length <= 0:
             return P.DATA_LENGTH_ERROR, b""
-        if addr + length > len(self.mem):
+        mem = self.mem
+        if addr + length > len(mem):
             return P.DATA_RANGE_ERROR, b""
-        if addr + length > DYNAMIC_START:
+        if addr + length > DYNAMIC_START or mem[BUS_WATCHDOG]:
             self._advance()
-        return 0, bytes(self.mem[addr: addr + length])
+        if not self._indirect_overlap(addr, length):
+            return 0, bytes(mem[addr: addr + length])
+        out = bytearray(mem[addr: addr + length])
+        d0 = self.indirect[1]
+        d1 = d0 + self.indirect[2]
+        targets, n = self._targets, len(mem)
+        for k in range(max(addr, d0), min(addr + length, d1)):
+            t = targets[k - d0]
+            out[k - addr] = mem[t] if t < n and not d0 <= t < d1 else 0  # the data area itself reads 0
+        return 0, bytes(out)
 
     def _write_inst(self, params: bytes) -> tuple[int, bytes]:
         if len(params) < 3:
@@ -701,28 +769,61 @@ class VirtualServo:
             return P.DATA_LIMIT_ERROR
         if TORQUE_ENABLE in addrs and cand[TORQUE_ENABLE] and self._latched:
             return P.RESULT_FAIL
+        if self.mem[BUS_WATCHDOG] == WATCHDOG_ERROR and (addrs & GOALS or (BUS_WATCHDOG in addrs
+                                                                           and cand[BUS_WATCHDOG])):
+            return P.DATA_RANGE_ERROR  # tripped: goals refused, and the watchdog takes only 0 (clear) first
         return 0
 
     def write(self, addr: int, data: bytes) -> int:
-        """Apply a WRITE of ``data`` at ``addr`` by the instruction rules; returns the status error (0 = ok)."""
+        """Apply a WRITE of ``data`` at ``addr`` by the instruction rules; returns the status error (0 = ok).
+
+        Bytes that fall on Indirect Data go to the addresses they stand for; the write is checked whole
+        (every part) before any part is applied."""
+        if self.mem[BUS_WATCHDOG]:
+            self.check_watchdog()
         self._integrate()  # the time so far ran under the old goal; present items refresh at the next read
-        err, cand = self._check_write(addr, data)
-        if err:
-            return err
-        plan = _write_plan(self.table, addr, len(data))
+        runs = self._indirect_runs(addr, data) if self._indirect_overlap(addr, len(data)) else [(addr, data)]
+        checked = []
+        for a, d in runs:
+            err, cand = self._check_write(a, d)
+            if err:
+                return err
+            checked.append((_write_plan(self.table, a, len(d)), cand))
         mem = self.mem
-        for it, _ in plan.items:
-            mem[it.addr: it.addr + it.size] = cand[it.addr: it.addr + it.size]
-        self._after_write(plan.addrs)
+        for plan, cand in checked:
+            for it, _ in plan.items:
+                mem[it.addr: it.addr + it.size] = cand[it.addr: it.addr + it.size]
+            self._after_write(plan.addrs)
         return 0
+
+    def _indirect_runs(self, addr: int, data: bytes) -> list[tuple[int, bytes]]:
+        """A write split into runs of consecutive target addresses (Indirect Data bytes redirected)."""
+        d0, n = self.indirect[1], self.indirect[2]
+        runs: list[tuple[int, bytearray]] = []
+        for k, byte in enumerate(data):
+            a = addr + k
+            t = self._targets[a - d0] if d0 <= a < d0 + n else a
+            if runs and runs[-1][0] + len(runs[-1][1]) == t:
+                runs[-1][1].append(byte)
+            else:
+                runs.append((t, bytearray((byte,))))
+        return [(a, bytes(b)) for a, b in runs]
 
     def _after_write(self, addrs: frozenset[int]) -> None:
         mem = self.mem
         self.revision += 1
         if BAUD in addrs:
             self.baud_bps = BAUD_RATES[mem[BAUD]]
-        if TORQUE_ENABLE in addrs and not mem[TORQUE_ENABLE]:
-            self._omega = self._torque = 0.0
+        if TORQUE_ENABLE in addrs:
+            if not mem[TORQUE_ENABLE]:
+                self._omega = self._torque = 0.0
+            elif self.torque_on_at is None:
+                self.torque_on_at = self.clock()
+        if BUS_WATCHDOG in addrs:
+            self._last_rx = self.clock()  # the write itself is a packet: the time-out counts from it
+        if self.indirect is not None and any(self.indirect[0] <= a < self.indirect[0] + 2 * self.indirect[2]
+                                             for a in addrs):
+            self._map_indirect()
         if addrs & _CACHED:
             self._cache_settings()
             self._refresh()  # a new Homing Offset or Drive Mode shows in Present Position at once
@@ -750,6 +851,10 @@ def dispatch(servos: Sequence[VirtualServo], pkt: P.Packet) -> list[Reply]:
     Never raises on any packet. Every reply is a complete, valid status packet, except that a fast
     read whose list names an absent servo gives a packet short of its announced length (module doc).
     """
+    if pkt.crc_ok:  # the Bus Watchdog counts every instruction a servo hears: its own ID or broadcast
+        for s in servos:
+            if pkt.id == s.id or pkt.id == P.BROADCAST_ID:
+                s.heard()
     if pkt.id != P.BROADCAST_ID:
         return _collide([(s.return_delay_s, r) for s in servos if s.id == pkt.id and (r := s.direct(pkt)) is not None])
     if not pkt.crc_ok:
@@ -860,6 +965,8 @@ class Faults:
     hwerror: dict[int, int] = field(default_factory=dict)  # ID -> Hardware Error Status bits raised at start
     close_after: float | None = None  # s after start() at which the port vanishes
     seed: int | None = None  # overrides the bus's seed
+    reboot: tuple[tuple[int, float], ...] = ()  # (ID, s after its torque first came on): a brown-out reboot
+    torque_off: tuple[tuple[int, float], ...] = ()  # (ID, s after torque first came on): switched off elsewhere
 
     def __post_init__(self):
         for name in ("drop", "corrupt"):
@@ -872,18 +979,26 @@ class Faults:
             raise ParameterError(f"faults: close_after={self.close_after!r} must be ≥ 0 s")
         self.remove = tuple(int(i) for i in self.remove)
         self.hwerror = {int(k): hardware_bits(v) for k, v in self.hwerror.items()}
+        for name in ("reboot", "torque_off"):
+            timed = tuple((int(i), float(t)) for i, t in getattr(self, name))
+            for i, t in timed:
+                if not (0 <= i <= P.MAX_ID and math.isfinite(t) and t >= 0):
+                    raise ParameterError(f"faults: {name}={i}@{t} needs a servo ID and a time ≥ 0 s")
+            setattr(self, name, timed)
 
 
-_FAULT_KEYS = ("drop", "corrupt", "delay_ms", "remove", "hwerror", "close_after", "seed")
+_FAULT_KEYS = ("drop", "corrupt", "delay_ms", "remove", "hwerror", "close_after", "seed", "reboot", "torque_off")
 
 
 def parse_faults(spec: str) -> Faults:
     """``"drop=0.01,corrupt=0.001,delay_ms=5,remove=3,hwerror=5:overload,close_after=2.5,seed=0"`` → `Faults`.
 
     ``remove`` and ``hwerror`` may repeat; several IDs or error names join with ``+``
-    (``remove=3+4``, ``hwerror=5:overload+overheating``, ``hwerror=5:0x24``). Empty spec: no faults.
+    (``remove=3+4``, ``hwerror=5:overload+overheating``, ``hwerror=5:0x24``). ``reboot=ID@T`` (the servo
+    reboots, as after a brown-out) and ``torque_off=ID@T`` (its torque is switched off, as from another
+    program) act T s after torque first came on at that servo; both may repeat. Empty spec: no faults.
     """
-    kw: dict[str, object] = {"remove": [], "hwerror": {}}
+    kw: dict[str, object] = {"remove": [], "hwerror": {}, "reboot": [], "torque_off": []}
     for part in (s.strip() for s in spec.split(",")):
         if not part:
             continue
@@ -896,7 +1011,8 @@ def parse_faults(spec: str) -> Faults:
             _parse_fault_value(kw, key, value)
         except ValueError:
             raise ParameterError(f"fault spec: bad value for {key!r}: {value!r}") from None
-    kw["remove"] = tuple(kw["remove"])  # type: ignore[arg-type]
+    for key in ("remove", "reboot", "torque_off"):
+        kw[key] = tuple(kw[key])  # type: ignore[arg-type]
     try:
         return Faults(**kw)  # type: ignore[arg-type]
     except ParameterError as e:
@@ -913,6 +1029,12 @@ def _parse_fault_value(kw: dict, key: str, value: str) -> None:
         kw[key] = int(value, 0)
     elif key == "remove":
         kw[key].extend(_servo_id(x) for x in value.split("+"))
+    elif key in ("reboot", "torque_off"):
+        sid, at, t = value.partition("@")
+        seconds = float(t)
+        if not at or not math.isfinite(seconds) or seconds < 0:
+            raise ValueError(value)
+        kw[key].append((_servo_id(sid), seconds))
     else:
         sid, colon, bits = value.partition(":")
         if not colon:
@@ -943,6 +1065,8 @@ class BusStats:
     overflows: int = 0  # replies (partly) lost because the client did not read and the pty was full
     sim_lag_s: float = 0.0  # simulated time skipped because the simulation fell behind the wall clock
     instructions: collections.Counter = field(default_factory=collections.Counter)  # name -> count
+    watchdog_trips: list = field(default_factory=list)  # (servo ID, s from its last packet to the trip)
+    timed_faults: list = field(default_factory=list)  # (kind, servo ID) of the reboot/torque_off faults applied
 
     def as_dict(self) -> dict[str, object]:
         d = {k: v for k, v in self.__dict__.items() if k != "instructions"}
@@ -954,7 +1078,11 @@ class BusStats:
         return (f"{self.packets} packets ({inst or 'none'}), {self.replies} replies, {self.dropped} dropped, "
                 f"{self.corrupted} corrupted, {self.crc_errors} CRC errors, {self.garbage_bytes} garbage bytes, "
                 f"{self.baud_mismatch} at a baud no servo uses, {self.overflows} overflows"
-                + (f", simulation lagged {self.sim_lag_s:.3f} s" if self.sim_lag_s else ""))
+                + (f", simulation lagged {self.sim_lag_s:.3f} s" if self.sim_lag_s else "")
+                + ("; bus watchdog tripped: " + ", ".join(f"ID {i} after {dt:.3f} s" for i, dt in self.watchdog_trips)
+                   if self.watchdog_trips else "")
+                + ("; faults applied: " + ", ".join(f"{k} ID {i}" for k, i in self.timed_faults)
+                   if self.timed_faults else ""))
 
 
 def client_baud(master_fd: int, buf: bytearray | None = None) -> int | None:
@@ -1016,6 +1144,7 @@ class VirtualBus:
         self._due: list[tuple[float, int, bytes, int]] = []  # scheduled replies: (time, seq, bytes, count)
         self._seq = itertools.count()
         self._close_deadline: float | None = None
+        self._timed: list[tuple[str, int, float]] = []  # reboot/torque_off faults still to apply
         self._tc_buf = bytearray(_TERMIOS2.size)
         self.spec: RobotSpec | None = None  # set by for_robot
         self.sim: _SimBackend | None = None  # set by for_robot(sim=True)
@@ -1090,6 +1219,36 @@ class VirtualBus:
         if f.close_after is not None:
             self._close_deadline = time.perf_counter() + f.close_after
             self._wake()
+        self._timed = [("reboot", i, t) for i, t in f.reboot] + [("torque_off", i, t) for i, t in f.torque_off]
+        for _, i, _ in self._timed:
+            self.servo(i)  # an unknown ID is one line now, not a silent no-op later
+
+    def housekeeping(self) -> None:
+        """What happens on the servos' own clocks, between packets: Bus Watchdog trips and timed faults
+        (called by the server thread and the simulation thread, bus lock held)."""
+        for s in self._listening:
+            if s.mem[BUS_WATCHDOG] and not s.watchdog_tripped:
+                delay = s.check_watchdog()
+                if delay is not None:
+                    self.stats.watchdog_trips.append((s.id, delay))
+        if self._timed:
+            left = []
+            for kind, i, t in self._timed:
+                s = self.servo(i)
+                if s.torque_on_at is None or s.clock() - s.torque_on_at < t:
+                    left.append((kind, i, t))
+                elif kind == "reboot":
+                    s._reboot(b"")
+                    self.stats.timed_faults.append((kind, i))
+                else:
+                    s.set("torque_enable", 0)
+                    self.stats.timed_faults.append((kind, i))
+            self._timed = left
+
+    def _busy(self) -> bool:
+        """Something on the servos' clocks is pending (an armed Bus Watchdog, a timed fault)."""
+        return bool(self._timed) or any(s.mem[BUS_WATCHDOG] and s.mem[TORQUE_ENABLE] and not s.watchdog_tripped
+                                        for s in self._listening)
 
     # -------------------------------------------------------------- dispatch
     def dispatch(self, pkt: P.Packet | bytes, baud: int | None = None) -> list[bytes]:
@@ -1182,7 +1341,11 @@ class VirtualBus:
         last_byte = 0.0
         while not self._halt:
             self._flush_due()
-            events = poller.poll(self._poll_timeout(reader.pending, last_byte))
+            with self.lock:
+                self.housekeeping()
+                busy = self._busy()
+            timeout = self._poll_timeout(reader.pending, last_byte)
+            events = poller.poll(min(timeout, 5) if busy else timeout)
             now = time.perf_counter()
             if self._close_deadline is not None and now >= self._close_deadline:
                 self._close_fds()
@@ -1563,6 +1726,7 @@ class _SimBackend:
                 t0 += (n - self.MAX_STEPS) * dt
                 n = self.MAX_STEPS
             with lock:
+                self.bus.housekeeping()
                 self._sync_command()
             robot.advance(n * dt)
             sim_t += n * dt
@@ -1572,6 +1736,18 @@ class _SimBackend:
 
 
 # ----------------------------------------------------------------------------------------- child process
+def _die_with_parent() -> None:
+    """In the child, before exec: SIGTERM when the parent dies, even by SIGKILL (Linux ``PR_SET_PDEATHSIG``),
+    so a killed `felis run --port virtual` leaves no virtual bus behind. Elsewhere a no-op."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+
+
 class VirtualBusProcess:
     """A virtual bus in a child process (``felis virtual-bus``); see `spawn`."""
 
@@ -1579,7 +1755,8 @@ class VirtualBusProcess:
         env = dict(os.environ)
         env.setdefault("MUJOCO_GL", "egl")
         self.proc = subprocess.Popen([sys.executable, "-m", "felis", "virtual-bus", *args], stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                     preexec_fn=_die_with_parent)
         self._stderr: collections.deque[str] = collections.deque(maxlen=200)
         self._lines: collections.deque[str] = collections.deque()
         self._got_line = threading.Condition()

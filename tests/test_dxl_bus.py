@@ -213,7 +213,8 @@ def _robot(vb, **kw) -> DynamixelRobot:
 
 
 def test_robot_arms_without_a_jump_and_reads_si(cat_bus):
-    with _robot(cat_bus) as robot:
+    # one write, then a 0.4 s wait: no loop keeps talking, so the Bus Watchdog deadman is off here
+    with _robot(cat_bus, bus_watchdog_s=None) as robot:
         s0 = robot.read()
         assert s0.q.shape == (12,) and np.allclose(s0.q, 0.0, atol=0.01)
         robot.arm()

@@ -9,6 +9,7 @@ after SIGKILL, stopped by their own Bus Watchdog), the log complete with its sum
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -255,7 +256,8 @@ class _Hold:
 
 def test_a_servo_that_reboots_mid_run_stops_the_run_naming_it(cat_bus):
     report, verified = _run_with(cat_bus, lambda: cat_bus.servo(3).handle(_reboot_packet(3)))
-    assert report.stopped.startswith("torque lost: fr_roll (ID 3) rebooted"), report.stopped
+    name = load_spec("cat").joints[2].name
+    assert report.stopped.startswith(f"torque lost: {name} (ID 3) rebooted"), report.stopped
     assert not report.ok and verified
     assert [cat_bus.servo(i).get("torque_enable") for i in IDS] == [0] * 12
 
@@ -350,3 +352,100 @@ def test_an_interrupted_episode_stops_a_batch_of_them():
         assert report.stopped == "interrupted (SIGTERM)" and report.interrupted and report.ok
         with pytest.raises(Interrupted, match="SIGTERM"):
             report.raise_if_interrupted()
+
+
+# --------------------------------------------------------------------------------- IMU faults
+@pytest.fixture
+def pty_pair():
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    yield master, os.ttyname(slave)
+    for fd in (master, slave):
+        with contextlib.suppress(OSError):
+            os.close(fd)
+
+
+def test_a_silent_imu_port_is_named_as_such(pty_pair):
+    from felis.drivers.imu import ImuReader, ImuSilentError
+
+    _, port = pty_pair
+    with ImuReader(port) as imu, pytest.raises(ImuSilentError, match=r"sent nothing in 0.3 s.*swapped"):
+        imu.wait_first(0.3)
+
+
+def test_an_imu_port_that_speaks_dynamixel_is_named_as_the_servo_bus(pty_pair):
+    from felis.drivers import protocol as P
+    from felis.drivers.imu import ImuProtocolError, ImuReader
+
+    master, port = pty_pair
+    with ImuReader(port) as imu:
+        os.write(master, P.status(1, 0, b"\x00\x08\x00\x00") * 5)
+        with pytest.raises(ImuProtocolError, match=r"not with BNO08x UART-RVC frames .*servo bus.*swapped"):
+            imu.wait_first(0.3)
+
+
+def test_an_imu_port_with_garbage_is_named_as_another_protocol(pty_pair):
+    from felis.drivers.imu import ImuProtocolError, ImuReader
+
+    master, port = pty_pair
+    with ImuReader(port) as imu:
+        os.write(master, bytes(range(1, 200)))
+        with pytest.raises(ImuProtocolError, match=r"no 0xAA 0xAA header"):
+            imu.wait_first(0.3)
+
+
+def test_an_imu_that_streams_frames_passes(pty_pair):
+    from felis.drivers.imu import ImuReader, encode_frame
+
+    master, port = pty_pair
+    with ImuReader(port) as imu:
+        os.write(master, b"".join(encode_frame(k, 0.0, 1.0, 2.0, (0.0, 0.0, 9.81)) for k in range(3)))
+        imu.wait_first(1.0)
+        assert imu.latest() is not None
+
+
+def test_looks_like_rvc_and_dynamixel():
+    from felis.drivers import protocol as P
+    from felis.drivers.imu import encode_frame, looks_like_dynamixel, looks_like_rvc
+
+    frames = b"".join(encode_frame(k, 0.0, 0.0, 0.0, (0.0, 0.0, 9.81)) for k in range(4))
+    assert looks_like_rvc(b"\x12\x34" + frames) and not looks_like_dynamixel(frames)
+    pkt = P.status(3, 0, b"\x01\x02")
+    assert looks_like_dynamixel(b"\x00" + pkt) and not looks_like_rvc(pkt * 4)
+    assert not looks_like_rvc(bytes(range(256)))
+
+
+def test_an_imu_that_goes_quiet_mid_run_is_an_event_and_stops_a_controller_that_needs_it():
+    class _Log:
+        def __init__(self):
+            self.events = []
+
+        def state(self, state):
+            pass
+
+        def command(self, t, command):
+            pass
+
+        def event(self, t, kind, **detail):
+            self.events.append(kind)
+
+    class _NeedsImu(_Hold):
+        needs_imu = True
+
+    log = _Log()
+    with VirtualBus.for_robot("cat", baud=BAUD, sim=True) as vb:
+        ticks = [0]
+
+        def silence(state, command):
+            ticks[0] += 1
+            if ticks[0] == 25:
+                vb.sim._emulator.stop()
+
+        with DynamixelRobot(load_spec("cat"), vb.port, BAUD, imu_port=vb.imu_port, imu_required=True) as robot:
+            report = run_loop(robot, _NeedsImu(), duration=3.0, clock="wall", rate_hz=50, monitors=[silence],
+                              log=log)
+    assert report.stopped.startswith("imu lost: no IMU reading for"), report.stopped
+    assert "imu_lost" in log.events and not report.ok
+    assert report.ticks < 60  # stopped within the IMU time-out, not at the end of the run

@@ -320,7 +320,7 @@ def test_each_status_error(bus, raw):
     assert err(P.READ, bytes([ID, 0, 0, 0])) == P.DATA_LENGTH_ERROR  # length 0
     assert err(P.WRITE, bytes([GOAL_POSITION, 0, 0, 2])) == P.DATA_LENGTH_ERROR  # 2 bytes of a 4-byte item
     assert err(P.WRITE, bytes([LED + 1, 0, 0])) == P.DATA_RANGE_ERROR  # a gap: no item
-    assert err(P.READ, bytes([140, 0, 20, 0])) == P.DATA_RANGE_ERROR  # past the end of the table
+    assert err(P.READ, bytes([240, 0, 20, 0])) == P.DATA_RANGE_ERROR  # past the end of the table (Indirect Data)
     assert err(P.WRITE, bytes([LED, 0, 2])) == P.DATA_RANGE_ERROR  # LED is 0/1
     assert err(P.WRITE, bytes([OP_MODE, 0, 2])) == P.DATA_RANGE_ERROR  # no operating mode 2
     assert err(P.WRITE, bytes([BAUD_RATE, 0, 7])) == P.DATA_RANGE_ERROR  # XL330 has no 4.5 Mbps

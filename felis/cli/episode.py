@@ -331,6 +331,7 @@ def _connect_checks(ep: Episode, spec, port: str):
         ep.warnings.append(f"no calibration: joint zeros are the servos' raw centre ticks; run `felis calibrate "
                            f"--robot {spec.name} --id NAME` and pass --robot-id NAME")
     with DynamixelBus(port, ep.baud) as bus:
+        bus.check_quiet()  # the IMU's port given as the bus: say so, not "two servos share an ID"
         applied = eeprom_check(bus, spec, cal, ConsoleOperator(yes=ep.yes, quiet=True))
     if applied:
         ep.warnings.append(f"applied {len(applied)} EEPROM setting(s): "

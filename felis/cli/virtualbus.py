@@ -8,10 +8,10 @@
 
 Output contract (what `felis.drivers.virtual.spawn` and scripts rely on): the FIRST line of stdout is
 ``port: <device path>``, then ``imu: <device path>`` when the robot has an IMU and ``--sim`` backs it,
-then one human-readable summary line; each is flushed at once. The bus serves until SIGINT or
-SIGTERM, then stops cleanly (every thread joined, ptys closed), prints its counters to stderr and
-exits 0. Bad arguments (unknown robot, baud rate a servo lacks, malformed fault spec) are
-`felis.errors.FelisError`s that the CLI prints as one line.
+then one human-readable summary line; each is flushed at once. The bus serves until SIGINT, SIGTERM
+or SIGHUP (the terminal closed), then stops cleanly (every thread joined, ptys closed), prints its
+counters to stderr (Bus Watchdog trips included) and exits 0. Bad arguments (unknown robot, baud rate
+a servo lacks, malformed fault spec) are `felis.errors.FelisError`s that the CLI prints as one line.
 
 ``--sim --drop H,R,P,Y`` holds the robot in the air before release: its lowest point H m above the
 floor, turned by roll R, pitch P, yaw Y degrees (`felis.sim.scenarios.drop`); the fall starts when
@@ -45,7 +45,8 @@ def register(sub, parser_class=None) -> None:
     p.add_argument("--sim", action="store_true", help="back the servos with the MuJoCo model (servo-in-the-loop)")
     p.add_argument("--baud", type=int, default=1_000_000, help="servo baud rate in bps (default 1000000)")
     p.add_argument("--faults", metavar="SPEC", help="inject faults, e.g. 'drop=0.01,corrupt=0.001,delay_ms=5,"
-                   "remove=3,hwerror=5:overload,close_after=2.5'")
+                   "remove=3,hwerror=5:overload,close_after=2.5,reboot=3@1.5,torque_off=7@2' (reboot/torque_off: "
+                   "seconds after that servo's torque first came on)")
     p.add_argument("--wire-time", action="store_true",
                    help="deliver replies when the wire would (baud rate, return delay)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fault injection (default 0)")
@@ -149,7 +150,8 @@ def cmd_virtual_bus(args) -> int:
                                seed=args.seed, servo_params=servo_params,
                                fixed_base=getattr(args, "fixed_base", False), drop=drop, **_imu_options(args))
     done = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: done.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, lambda *_: done.set())
+                for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
         bus.start()
