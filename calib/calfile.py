@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import CalibrationError
-from felis.files import write_atomic
+from felis.files import check_readable, write_atomic
 from felis.servos import RAD_PER_TICK, TICKS_PER_REV
 from felis.spec import JointSpec, RobotSpec
 
@@ -291,6 +291,7 @@ def now_iso() -> str:
 def load(path: str | Path, spec: RobotSpec | None = None, *, complete: bool = True) -> CalibrationFile:
     """Read and check a calibration file; every problem is one `CalibrationError` line."""
     path = Path(path)
+    check_readable(path, "calibration file", CalibrationError)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -328,6 +329,7 @@ def save(cal: CalibrationFile, path: str | Path) -> Path:
 
 def copy_out(src: Path, dst: str | Path) -> Path:
     """Export: copy a checked calibration file to ``dst`` (atomic, like `save`)."""
+    check_readable(src, "calibration file", CalibrationError)
     return write_atomic(dst, Path(src).read_bytes(), "calibration file", CalibrationError)
 
 

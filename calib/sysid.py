@@ -66,6 +66,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import FelisError, SysidError
+from felis.files import MAX_ARRAY_BYTES, check_readable
 from felis.hal import Command, Lifecycle, Robot
 from felis.loop import servo_stop
 from felis.servos import servo_model
@@ -271,6 +272,7 @@ class Recording:
     def load(path: str | os.PathLike, spec: RobotSpec | None = None) -> Recording:
         """Read a recording written by `save`; checks it against ``spec`` when given."""
         path = Path(path)
+        check_readable(path, "recording", SysidError, MAX_ARRAY_BYTES)
         try:
             with np.load(path, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}

@@ -97,7 +97,10 @@ class Item:
             raise ParameterError(f"{self.name}: {value!r} is not one of {known}")
         if not math.isfinite(value):
             raise ParameterError(f"{self.name}: value must be finite, got {value}")
-        raw = round(value / self.scale + self.offset)
+        scaled = value / self.scale + self.offset
+        if not math.isfinite(scaled) or abs(scaled) > 2**40:  # e.g. 1e308 rad: far outside any item
+            raise ParameterError(f"{self.name}: {value:g} {self.unit} is out of range ({self.describe_range()})")
+        raw = round(scaled)
         self.check(raw)
         return raw
 

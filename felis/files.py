@@ -1,5 +1,7 @@
 """Output files: parent folders made with a clear error, permissions as a plain ``open`` gives, and
-atomic replacement.
+atomic replacement; and the bound on every user file felis reads whole (`check_readable`: a regular
+file, no larger than its kind can be), so ``/dev/zero`` or a wrong multi-gigabyte file is one line, not
+a process that grows until it is killed.
 
 Every writer in felis (run logs, plots, videos, calibration and servo parameter files) prepares its
 target here, so an operator who gives a bad path gets one line naming the part that is wrong; files
@@ -111,10 +113,37 @@ def sync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+MAX_TEXT_BYTES = 16 * 2**20  # descriptions, calibration, servo parameters, trajectories, push and drop files
+MAX_ARRAY_BYTES = 1 * 2**30  # .npz weights, recordings, datasets, checkpoints
+MAX_LOG_BYTES = 4 * 2**30  # run logs
+
+
+def check_readable(path: str | Path, what: str, error: type[FelisError] = FelisError,
+                   limit: int = MAX_TEXT_BYTES) -> None:
+    """Refuse, with one line, a user file felis would read whole that is not a regular file (``/dev/zero``,
+    a FIFO, a terminal: endless) or is larger than any ``what`` can be. A missing file passes (the caller
+    says "no such …" its own way)."""
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except OSError:
+        return
+    import stat
+
+    if stat.S_ISDIR(st.st_mode):
+        return  # the caller's own "is a directory" line
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"{path}: not a regular file, so not a {what} (a device or a pipe would be read without end)")
+    if st.st_size > limit:
+        raise error(f"{path}: {st.st_size / 2**20:.0f} MiB is more than a {what} can be "
+                    f"({limit / 2**20:.0f} MiB at most); is it the right file?")
+
+
 def read_json(path: str | Path, what: str, error: type[FelisError] = FelisError, hint: str = "") -> object:
     """Parse the JSON file ``path`` (a ``what``: "push file", "drops file", …); a missing, unreadable or
     malformed file is one-line ``error`` naming it (``hint`` is added to "no such …", e.g. how to make one)."""
     path = Path(path)
+    check_readable(path, what, error)
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -141,6 +170,7 @@ def read_npz(path: str | Path, what: str, error: type[FelisError] = FelisError) 
         raise error(f"{path}: no such {what} file")
     if path.is_dir():
         raise error(f"{path}: is a directory, not a {what} file")
+    check_readable(path, f"{what} file", error, MAX_ARRAY_BYTES)
     try:
         z = np.load(path, allow_pickle=False)
     except ValueError:  # neither zip nor .npy magic: numpy would have to unpickle it

@@ -44,7 +44,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from felis.errors import LogError
-from felis.files import prepare_parent
+from felis.files import MAX_LOG_BYTES, check_readable, prepare_parent
 from felis.hal import Command, State
 from felis.spec import RobotSpec
 
@@ -347,6 +347,7 @@ def _read_bytes(path: Path) -> bytes:
     try:
         if not path.is_file():
             raise LogError(f"{path}: no such run log" if not path.exists() else f"{path}: not a file")
+        check_readable(path, "run log", LogError, MAX_LOG_BYTES)
         data = path.read_bytes()
     except OSError as e:
         raise LogError(f"{path}: cannot read run log: {e.strerror or e}") from None

@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from felis.errors import DescriptionError, UnknownRobotError
+from felis.errors import DescriptionError, ParameterError, UnknownRobotError
+from felis.files import check_readable
 from felis.servos import SERVOS, servo_model
 
 SCHEMA = 1
@@ -141,7 +142,10 @@ def load_spec(robot: str | Path) -> RobotSpec:
     if text_path.endswith(".toml") or "/" in text_path or isinstance(robot, Path):
         path = Path(robot)
         if not path.is_file():
+            if path.exists() and not path.is_dir():
+                check_readable(path, "robot description", ParameterError)
             raise DescriptionError(str(path), "file", "no such description file")
+        check_readable(path, "robot description", ParameterError)
         return parse_spec(path.read_bytes().decode("utf-8", errors="replace"), str(path))
     resource = ROBOTS_DIR / f"{robot}.toml"
     if not resource.is_file():

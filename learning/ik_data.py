@@ -42,7 +42,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from felis.errors import ParameterError, TrajectoryError
-from felis.files import write_atomic
+from felis.files import check_readable, write_atomic
 from felis.learning import armkin
 from felis.learning.armkin import REACH, SHOULDER
 
@@ -634,6 +634,7 @@ def read_trajectory_csv(path: str | Path) -> Trajectory:
     is not 0.01 s ± 10%. Returns kind ``file``, ident −1, q None.
     """
     path = Path(path)
+    check_readable(path, "trajectory file", TrajectoryError)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

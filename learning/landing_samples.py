@@ -103,7 +103,7 @@ from typing import Any
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.files import write_atomic
+from felis.files import MAX_ARRAY_BYTES, check_readable, write_atomic
 from felis.learning.landing_nets import JOINTS, LANDING_HEIGHT_MM, MAX_SPEED
 
 TRAINING_ORIENTATIONS: tuple[tuple[float, float, float], ...] = (
@@ -444,6 +444,7 @@ def _read_arrays(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise ParameterError(f"{path}: no such landing samples arrays file (written beside the .json by "
                              "make_samples)")
+    check_readable(path, "landing samples arrays file", ParameterError, MAX_ARRAY_BYTES)
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}

@@ -650,6 +650,9 @@ def _difference(saved: dict, now: dict) -> str | None:
 
 def load_checkpoint(path: Path, run_id: dict) -> _State:
     """The state in ``path``; `CheckpointError` (one line) if it is corrupt or from another run."""
+    from felis.files import MAX_ARRAY_BYTES, check_readable
+
+    check_readable(path, "checkpoint", CheckpointError, MAX_ARRAY_BYTES)
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}

@@ -24,7 +24,7 @@ from dataclasses import asdict, fields
 from pathlib import Path
 
 from felis.errors import ServoParamsError
-from felis.files import write_atomic
+from felis.files import check_readable, write_atomic
 from felis.sim.servo import ServoParams
 from felis.spec import RobotSpec
 
@@ -61,6 +61,7 @@ def save_servo_params(path: str | os.PathLike, robot: str, params: Mapping[str, 
 def load_servo_params(path: str | os.PathLike, spec: RobotSpec) -> dict[str, ServoParams]:
     """Read a servo parameter file for ``spec``'s robot: ``{joint: ServoParams}`` (module doc)."""
     path = Path(path)
+    check_readable(path, "servo parameter file", ServoParamsError)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

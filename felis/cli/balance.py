@@ -232,7 +232,9 @@ def _read_demos(path: Path):
     import numpy as np
 
     from felis.controllers.reactions import FEATURES, REACTIONS
+    from felis.files import MAX_ARRAY_BYTES, check_readable
 
+    check_readable(path, "demonstrations file", ParameterError, MAX_ARRAY_BYTES)
     try:
         with np.load(path, allow_pickle=False) as z:
             X, S, source = z["features"], z["scores"], str(z["source"])

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import sys
 import time
@@ -62,7 +63,10 @@ def _baud(text: str) -> int:
     elif t.endswith("k"):
         t, mult = t[:-1], 1000
     try:
-        v = int(float(t) * mult)
+        f = float(t) * mult
+        if not math.isfinite(f) or f != int(f):
+            raise ValueError(text)
+        v = int(f)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a baud rate: {text!r}") from None
     if v not in SDK_BAUDS:
@@ -72,7 +76,7 @@ def _baud(text: str) -> int:
 
 # ----------------------------------------------------------------------------- bus access
 @contextlib.contextmanager
-def open_bus(args, *, sim: bool = False) -> Iterator:
+def open_bus(args, *, sim: bool = False, retries: int = 1) -> Iterator:
     """The DynamixelBus for ``--port``; ``virtual`` spawns a virtual bus for ``--robot``."""
     from felis.drivers.bus import DynamixelBus
 
@@ -86,7 +90,7 @@ def open_bus(args, *, sim: bool = False) -> Iterator:
             vb = stack.enter_context(spawn(getattr(args, "robot", None) or "cat", sim=sim, baud=args.baud))
             port = vb.port
             args._imu_port = vb.imu_port
-        bus = stack.enter_context(DynamixelBus(port, args.baud))
+        bus = stack.enter_context(DynamixelBus(port, args.baud, retries=retries))
         yield bus
 
 
@@ -121,13 +125,14 @@ def cmd_find_port(args) -> int:
     if args.unplug:
         if args.json:
             raise ParameterError("--unplug is interactive; it cannot be combined with --json")
+        if not sys.stdin.isatty():
+            raise ParameterError("--unplug is interactive: it needs a terminal to wait for Enter (stdin is not one)")
         print("ports now: " + (", ".join(before) or "none"))
         input("unplug the Dynamixel adapter, then press Enter… ")
         after = ports()
         gone = sorted(set(before) - set(after))
         if not gone:
-            print("no port disappeared; is the adapter plugged into this machine?")
-            return 1
+            raise CommError("no port disappeared; is the adapter plugged into this machine?")
         also = f" (also gone: {', '.join(gone[1:])})" if gone[1:] else ""
         print(f"the adapter is {gone[0]}; plug it back in{also}")
         return 0
@@ -238,8 +243,11 @@ def _value(text: str):
 
 def cmd_write(args) -> int:
     value = _value(args.value)
-    if args.raw and isinstance(value, str):
-        raise ParameterError(f"--raw needs an integer, got {args.value!r}")
+    if args.raw:
+        try:
+            value = int(args.value, 0)  # raw values are integers: 2000.7 is refused, not truncated
+        except ValueError:
+            raise ParameterError(f"--raw needs an integer (e.g. 2048 or 0x800), got {args.value!r}") from None
     with open_bus(args) as bus:
         it = bus.item(args.id, args.item)
         if it.values is not None and not args.raw and isinstance(value, float):
@@ -252,29 +260,81 @@ def cmd_write(args) -> int:
 
 
 def cmd_torque(args) -> int:
+    """Torque on or off, and read back: the emergency stop reports success only when it is true.
+
+    ``off`` without ``--id``: a broadcast write, then Torque Enable read back from every servo the
+    ``--robot`` description names or, without one, every servo a broadcast ping finds at this baud rate;
+    none answering is a failure (torque state unknown), and so is a servo still on. ``on`` needs ``--id``;
+    each servo's Goal Position is set to its Present Position first (no jump), then torque on, read back.
+    """
     on = args.state == "on"
     with open_bus(args) as bus:
         if args.id:
-            ids = args.id
+            ids = list(args.id)
         elif on:
             raise ParameterError("torque on needs --id (which servos to power); torque off without --id "
                                  "switches every servo off")
         else:
             ids = None
+        if on:
+            _goal_to_present(bus, ids)
         if ids is None:
             from felis.drivers.protocol import BROADCAST_ID
 
             bus.write_raw(BROADCAST_ID, 64, b"\x00", "torque off (broadcast)")
+            check = _known_ids(args, bus)
         else:
             bus.torque(ids, on)
-            back = bus.sync_read(ids, 64, 1, fast=False, retries=2)
-            wrong = [i for i in ids if back.data[i] is None or back.data[i][0] != int(on)]
-            if wrong:
-                raise CommError(f"torque is not {args.state} on servo(s) {', '.join(map(str, wrong))} "
-                                "(no reply, or a hardware-error shutdown: see `felis info ID`)")
-    _out(args, {"torque": args.state, "ids": ids or "all"},
-         f"torque {args.state}: " + (", ".join(map(str, ids)) if ids else "all servos (broadcast)"))
+            check = ids
+        wrong, silent = _torque_back(bus, check, on)
+        if wrong and not on:  # a lost write: once more to those still on
+            bus.torque(wrong, False)
+            wrong, silent = _torque_back(bus, check, on)
+    if wrong or silent:
+        parts = []
+        if wrong:
+            parts.append(f"torque is still {'off' if on else 'ON'} on servo(s) {', '.join(map(str, wrong))}"
+                         + (" (a hardware-error shutdown? see `felis info ID`)" if on else ""))
+        if silent:
+            parts.append(f"no reply from servo(s) {', '.join(map(str, silent))}: their torque state is unknown")
+        raise CommError("; ".join(parts))
+    _out(args, {"torque": args.state, "ids": check, "verified": True},
+         f"torque {args.state}: verified on servo(s) {', '.join(map(str, check))}"
+         + (" (broadcast, then read back)" if ids is None else ""))
     return 0
+
+
+def _known_ids(args, bus) -> list[int]:
+    """The servos an emergency stop checks: the --robot's, else whatever answers a broadcast ping."""
+    if getattr(args, "robot", None):
+        from felis.spec import load_spec
+
+        return [j.servo_id for j in load_spec(args.robot).joints]
+    found = sorted({f.id for f in bus.scan(bauds=[bus.baud])})
+    if not found:
+        raise CommError(f"no servo answered at {bus.baud} bps on {bus.port_name}: torque state unknown (another "
+                        "baud rate? `felis scan` finds it; power? the servo LEDs blink at power-up)")
+    return found
+
+
+def _torque_back(bus, ids: list[int], on: bool) -> tuple[list[int], list[int]]:
+    """(servos whose Torque Enable is not ``on``, servos that did not answer)."""
+    back = bus.sync_read(ids, 64, 1, fast=False, retries=3)
+    wrong = [i for i in ids if back.data[i] is not None and back.data[i][0] != int(on)]
+    return wrong, back.stale
+
+
+def _goal_to_present(bus, ids: list[int]) -> None:
+    """Goal Position = Present Position on the servos in a position mode, so torque on holds them where
+    they are (as `DynamixelRobot.arm` does)."""
+    modes = bus.sync_read(ids, 11, 1, fast=False, retries=3)
+    pos_ids = [i for i in ids if modes.data[i] is not None and modes.data[i][0] in (3, 4, 5)]
+    present = bus.sync_read(pos_ids, 132, 4, fast=False, retries=3)
+    missing = present.stale + modes.stale
+    if missing:
+        raise CommError(f"no reply from servo(s) {', '.join(map(str, sorted(set(missing))))}: torque stays off "
+                        "(its position could not be read, and a goal left elsewhere would make the joint jump)")
+    bus.sync_write(116, 4, {i: present.data[i] for i in pos_ids})
 
 
 def cmd_reboot(args) -> int:
@@ -299,35 +359,75 @@ def cmd_set_id(args) -> int:
         raise ParameterError(f"servo already has ID {args.id}")
     if args.new_id > 252:
         raise ParameterError(f"IDs go up to 252, got {args.new_id}")
-    with open_bus(args) as bus:
+    with open_bus(args, retries=3) as bus:
         bus.ping(args.id)
         other = bus.try_ping(args.new_id, retries=1)
         if other is not None:
             raise ParameterError(f"ID {args.new_id} is already used by a {other.model}; pick a free ID "
                                  "(`felis scan` lists them)")
-        bus.write(args.id, "id", args.new_id, raw=True, dry_run=args.dry_run)
-        if not args.dry_run:
-            f = bus.ping(args.new_id, retries=2)
+        note = ""
+        if args.dry_run:
+            bus.write(args.id, "id", args.new_id, raw=True, dry_run=True)
+        else:
+            note = _write_then_verify(bus, lambda: bus.write(args.id, "id", args.new_id, raw=True),
+                                      lambda: bus.try_ping(args.new_id, retries=3),
+                                      lambda: bus.try_ping(args.id, retries=3),
+                                      f"ID {args.id} → {args.new_id}")
+            f = bus.ping(args.new_id, retries=3)
     verb = "would change" if args.dry_run else "changed"
-    _out(args, {"old_id": args.id, "new_id": args.new_id, "dry_run": args.dry_run},
-         f"{verb} ID {args.id} → {args.new_id}" + ("" if args.dry_run else f" ({f.model}, verified by ping)"))
+    _out(args, {"old_id": args.id, "new_id": args.new_id, "dry_run": args.dry_run, "verified": not args.dry_run},
+         f"{verb} ID {args.id} → {args.new_id}" + ("" if args.dry_run else f" ({f.model}, verified by ping{note})"))
     return 0
 
 
 def cmd_set_baud(args) -> int:
     from felis.drivers.bus import baud_code
 
-    with open_bus(args) as bus:
+    with open_bus(args, retries=3) as bus:
         table = bus.table(args.id)
         code = baud_code(table, args.new_baud)
-        bus.write(args.id, "baud_rate", code, raw=True, dry_run=args.dry_run)
-        if not args.dry_run:
+        old = bus.baud
+        note = ""
+        if args.dry_run:
+            bus.write(args.id, "baud_rate", code, raw=True, dry_run=True)
+        else:
+            def at(baud):
+                def ping():
+                    bus.set_baud(baud)
+                    return bus.try_ping(args.id, retries=3)
+                return ping
+
+            note = _write_then_verify(bus, lambda: bus.write(args.id, "baud_rate", code, raw=True), at(args.new_baud),
+                                      at(old), f"servo {args.id} to {args.new_baud} bps")
             bus.set_baud(args.new_baud)
-            f = bus.ping(args.id, retries=2)
+            f = bus.ping(args.id, retries=3)
     verb = "would set" if args.dry_run else "set"
-    _out(args, {"id": args.id, "baud": args.new_baud, "code": code, "dry_run": args.dry_run},
-         f"{verb} servo {args.id} to {args.new_baud} bps" + ("" if args.dry_run else f" ({f.model}, verified)"))
+    _out(args, {"id": args.id, "baud": args.new_baud, "code": code, "dry_run": args.dry_run,
+                "verified": not args.dry_run},
+         f"{verb} servo {args.id} to {args.new_baud} bps" + ("" if args.dry_run else f" ({f.model}, verified{note})"))
     return 0
+
+
+def _write_then_verify(bus, write, new_answers, old_answers, what: str) -> str:
+    """Write a setting that moves the servo (ID, baud rate), then say what is true.
+
+    The servo acknowledges with its old ID at its old baud rate; on a noisy bus that status can be lost
+    while the write took. So a write that got no reply is judged by pinging: at the new address it
+    changed (returns a note saying the reply was lost), at the old one it did not (CommError), at
+    neither the outcome is unknown (CommError)."""
+    from felis.drivers.bus import CorruptReplyError, NoReplyError
+
+    try:
+        write()
+        return ""
+    except (NoReplyError, CorruptReplyError) as e:
+        lost = e
+    if new_answers() is not None:
+        return "; its status reply was lost"
+    if old_answers() is not None:
+        raise CommError(f"{what} did not happen: the servo still answers as before ({lost})")
+    raise CommError(f"{what}: no reply to the write and the servo answers neither as before nor as after; "
+                    "`felis scan` shows where it is")
 
 
 # ----------------------------------------------------------------------------- monitor
@@ -339,10 +439,13 @@ def monitor_rows(bus, ids: list[int]) -> list[dict]:
     rows = []
     for i in ids:
         d = res.data[i]
-        if d is None:
+        t = bus.models.get(i)
+        if t is None and d is not None:
+            with contextlib.suppress(CommError, ParameterError):
+                t = bus.table(i)  # a servo that came back: learn its model
+        if d is None or t is None:
             rows.append({"id": i, "stale": True})
             continue
-        t = bus.table(i)
         cur_item = t.items.get("present_current") or t.items["present_load"]
         row = {"id": i, "stale": False,
                "position": t.items["present_position"].to_si(int.from_bytes(d[6:10], "little", signed=True)),
@@ -358,24 +461,31 @@ def monitor_rows(bus, ids: list[int]) -> list[dict]:
 
 
 def _monitor_ids(args, bus) -> list[int]:
-    if args.id:
-        return args.id
+    """The servos to watch: ``--id``, else the ``--robot``'s (models from its description: a missing servo
+    is a row saying so, not a refusal to start), else every servo a broadcast ping finds."""
     from felis.spec import load_spec
 
     if args.robot:
-        ids = [j.servo_id for j in load_spec(args.robot).joints]
+        spec = load_spec(args.robot)
+        for j in spec.joints:
+            bus.register(j.servo_id, j.servo)
+        ids = list(args.id) if args.id else [j.servo_id for j in spec.joints]
+    elif args.id:
+        ids = list(args.id)
+        for i in ids:
+            bus.try_ping(i, retries=1)  # learns the model of those that answer; the others show as missing
     else:
         ids = [f.id for f in bus.scan(bauds=[bus.baud])]
     if not ids:
         raise CommError(f"no servos answer on {bus.port_name} at {bus.baud} bps")
-    for i in ids:
-        bus.table(i)
     return ids
 
 
 def cmd_monitor(args) -> int:
-    if args.rate < 1 or args.rate > 1000:
+    if not 1 <= args.rate <= 1000:  # NaN fails too
         raise ParameterError(f"--rate must be 1…1000 Hz, got {args.rate}")
+    if args.duration is not None and not 0 < args.duration <= 1e6:
+        raise ParameterError(f"--duration must be a positive number of seconds, got {args.duration}")
     from felis.files import check_target, prepare_parent
 
     for out in (args.csv, args.mcap):
@@ -390,6 +500,9 @@ def cmd_monitor(args) -> int:
         period = 1.0 / args.rate
         t0 = time.perf_counter()
         n = stale = 0
+        missing = dict.fromkeys(ids, 0)  # readings with no reply, per servo
+        interrupted = False
+        rows: list[dict] = []
         live = None
         try:
             if not args.json and sys.stdout.isatty():
@@ -403,23 +516,32 @@ def cmd_monitor(args) -> int:
                 t = time.perf_counter() - t0
                 n += 1
                 stale += sum(r["stale"] for r in rows)
+                for r in rows:
+                    missing[r["id"]] += r["stale"]
                 sink.write(t, rows)
                 if live is not None:
                     live.update(_table(rows, n / max(t, 1e-9)), refresh=True)
                 next_t += period
                 time.sleep(max(0.0, next_t - time.perf_counter()))
-        except KeyboardInterrupt:
-            pass
+        except KeyboardInterrupt:  # Ctrl-C, SIGTERM, SIGHUP (felis.shutdown): a complete export, then 130
+            interrupted = True
         finally:
             if live is not None:
                 live.stop()
             sink.close()
     elapsed = time.perf_counter() - t0
+    silent = {i: k for i, k in missing.items() if k}
     summary = {"samples": n, "rate_hz": round(n / elapsed, 2) if elapsed > 0 else 0.0, "stale_readings": stale,
-               "ids": ids, "csv": str(args.csv) if args.csv else None, "mcap": str(args.mcap) if args.mcap else None,
-               "last": rows if n else []}
+               "no_reply": silent, "ids": ids, "csv": str(args.csv) if args.csv else None,
+               "mcap": str(args.mcap) if args.mcap else None, "last": rows if n else [],
+               "interrupted": interrupted}
     _out(args, summary, f"{n} samples at {summary['rate_hz']} Hz; {stale} stale readings"
+         + (" (no reply: " + ", ".join(f"ID {i} {k}×" for i, k in silent.items()) + ")" if silent else "")
          + (f"; CSV {args.csv}" if args.csv else "") + (f"; MCAP {args.mcap}" if args.mcap else ""))
+    if interrupted:
+        from felis.shutdown import EXIT_INTERRUPTED
+
+        return EXIT_INTERRUPTED
     return 0
 
 
@@ -447,9 +569,16 @@ class _MonitorSink:
               "status_error", "hardware_errors")
 
     def __init__(self, csv_path: Path | None, mcap_path: Path | None, ids: list[int]):
+        self._csv_f = self._csv = self._mcap = self._mcap_f = None
+        try:
+            self._open(csv_path, mcap_path)
+        except OSError as e:
+            self.close()
+            raise ParameterError(f"cannot write monitor export {e.filename}: {e.strerror or e}") from None
+
+    def _open(self, csv_path: Path | None, mcap_path: Path | None) -> None:
         import csv
 
-        self._csv_f = self._csv = self._mcap = self._mcap_f = None
         if csv_path is not None:
             self._csv_f = open(csv_path, "w", newline="")
             self._csv = csv.DictWriter(self._csv_f, fieldnames=self.FIELDS, extrasaction="ignore")

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import signal
 import sys
-import threading
+import time
 
 SWITCH_INTERVAL_S = 0.0005
 
@@ -149,8 +149,10 @@ def cmd_virtual_bus(args) -> int:
     bus = VirtualBus.for_robot(args.robot, baud=args.baud, sim=args.sim, wire_time=args.wire_time, faults=faults,
                                seed=args.seed, servo_params=servo_params,
                                fixed_base=getattr(args, "fixed_base", False), drop=drop, **_imu_options(args))
-    done = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: done.set())
+    # The handler only appends to a list: an Event.set() there would take the lock that the main thread's
+    # own Event.wait() may hold when the signal lands, and a second signal would then deadlock the process.
+    stop: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, _frame: stop.append(signum))
                 for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
@@ -159,8 +161,8 @@ def cmd_virtual_bus(args) -> int:
         if bus.imu_port:
             print(f"imu: {bus.imu_port}", flush=True)
         print(summary(bus, args), flush=True)
-        while not done.wait(0.2):
-            pass
+        while not stop:
+            time.sleep(0.05)
     finally:
         bus.stop()
         for sig, handler in previous.items():
