@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import uuid
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -156,6 +157,11 @@ def _ray_batch(token: str, initializer: Callable[..., None] | None, initargs: tu
     return [fn(j) for j in batch]
 
 
+def _ray_initialized() -> bool:
+    ray = sys.modules.get("ray")
+    return bool(ray is not None and getattr(ray, "is_initialized", lambda: False)())
+
+
 def _import_ray():
     try:
         import ray
@@ -164,6 +170,35 @@ def _import_ray():
                              "evaluate on a Ray cluster, or leave out the Ray address to use local processes"
                              ) from None
     return ray
+
+
+#: Ray's own switch for a single-machine Ray (how it runs on macOS and Windows): the node is reached as
+#: 127.0.0.1, so the GCS, the raylet and the workers listen on the loopback address only.
+RAY_LOCAL_ONLY_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+def local_ray_options(num_cpus: int | None) -> dict:
+    """``ray.init`` keywords for a local Ray bound to the loopback address.
+
+    ``_node_ip_address="127.0.0.1"`` alone is not enough on Linux: Ray 2.60 resolves a loopback node
+    address to the machine's network address and its servers then listen on every interface (measured
+    with ``ss -ltn``: ``*:port``). With `RAY_LOCAL_ONLY_ENV` = 0 (`prefer_loopback_ray`), Ray keeps
+    127.0.0.1 and every listening socket is on it. The dashboard is off.
+    """
+    prefer_loopback_ray()
+    return {"num_cpus": num_cpus, "include_dashboard": False, "dashboard_host": "127.0.0.1",
+            "_node_ip_address": "127.0.0.1", "log_to_driver": False}
+
+
+def prefer_loopback_ray() -> None:
+    """Make a Ray started from this process a single-machine Ray on 127.0.0.1 (see `local_ray_options`).
+
+    Ray reads `RAY_LOCAL_ONLY_ENV` once, when it is imported; the variable is set for Ray's child
+    processes, and where Ray was imported before this call its module constant is set to match."""
+    os.environ[RAY_LOCAL_ONLY_ENV] = "0"
+    constants = sys.modules.get("ray._private.ray_constants")
+    if constants is not None and getattr(constants, "ENABLE_RAY_CLUSTER", False):
+        constants.ENABLE_RAY_CLUSTER = False
 
 
 class RayEvaluator:
@@ -187,13 +222,15 @@ class RayEvaluator:
         if num_cpus is not None and address != "local":
             raise ParameterError("num_cpus applies to a local Ray only (address 'local'); a cluster has its own")
         _check_chunksize(chunksize)
+        if address == "local" and not _ray_initialized():
+            prefer_loopback_ray()  # before Ray is imported where it can be
         ray = _import_ray()
         self._ray, self.address, self.chunksize = ray, address, chunksize
         self._owns = not ray.is_initialized()
         if self._owns:
             try:
                 if address == "local":
-                    ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+                    ray.init(**local_ray_options(num_cpus))
                 else:
                     ray.init(address=address, log_to_driver=False)
             except (ConnectionError, RuntimeError, ValueError) as e:

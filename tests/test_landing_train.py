@@ -6,11 +6,14 @@ final_up_z)."""
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import math
 import operator
+import os
 import sys
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -366,6 +369,51 @@ def test_f_only_mode_runs(tmp_path, samples):
     assert _numbers(res) != _numbers(res_sim)
 
 
+def _children(pid: int) -> set[int]:
+    found, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                kids = (task / "children").read_text().split()
+            except OSError:
+                continue
+            for k in map(int, kids):
+                if k not in found:
+                    found.add(k)
+                    todo.append(k)
+    return found
+
+
+def _hex_address(text: str) -> str:
+    raw = bytes.fromhex(text)
+    if len(raw) == 4:
+        return ".".join(str(b) for b in raw[::-1])
+    words = [raw[i:i + 4][::-1] for i in range(0, 16, 4)]  # /proc/net/tcp6: four host-order 32-bit words
+    return str(ipaddress.IPv6Address(b"".join(words))).replace("::ffff:7f00:1", "::ffff:127.0.0.1")
+
+
+def _listening_addresses_of_children() -> set[str]:
+    """Local addresses of the TCP sockets in LISTEN state held by this process's descendants (Ray's GCS,
+    raylet, workers), read from /proc: `0.0.0.0` or `::` would mean every interface."""
+    inodes = set()
+    for pid in _children(os.getpid()):
+        for fd in Path(f"/proc/{pid}/fd").glob("*"):
+            try:
+                target = os.readlink(fd)
+            except OSError:
+                continue
+            if target.startswith("socket:["):
+                inodes.add(target[8:-1])
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == "0A" and f[9] in inodes:  # 0A = LISTEN
+                found.add(_hex_address(f[1].split(":")[0]))
+    return found
+
+
 def test_ray_evaluator_matches_the_process_pool(tmp_path, samples):
     """A tiny training on Ray started locally with 2 CPUs gives the same numbers as the process pool (and
     inline). Ray comes with the `cluster` extra, which `make` installs: no skip."""
@@ -381,6 +429,9 @@ def test_ray_evaluator_matches_the_process_pool(tmp_path, samples):
         assert ev.map(abs, jobs) == [abs(j) for j in jobs]
         _, on_ray = _train(tmp_path, samples, replace(TINY, workers=2, ray_address="local"), name="ray")
         assert ray.is_initialized()  # the training's evaluator did not own the session, so left it running
+        assert {n["NodeManagerAddress"] for n in ray.nodes()} == {"127.0.0.1"}  # a local Ray on loopback
+        listening = _listening_addresses_of_children()
+        assert listening and all(a in ("127.0.0.1", "::ffff:127.0.0.1", "::1") for a in listening), listening
     assert not ray.is_initialized()
     assert on_ray["run"]["evaluator"].startswith("Ray")
     assert _numbers(on_ray) == _numbers(inline)
