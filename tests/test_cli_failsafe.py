@@ -130,7 +130,8 @@ def test_set_baud_on_a_noisy_bus_reports_what_is_true(seed):
 
 
 # --------------------------------------------------------------------------------- monitor
-def test_monitor_starts_with_a_missing_servo_and_a_signal_ends_it_with_a_complete_export(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_monitor_starts_with_a_missing_servo_and_a_signal_ends_it_with_a_complete_export(tmp_path, sig):
     out = tmp_path / "m.csv"
     with spawn("cat", faults="remove=3") as vb:
         proc = subprocess.Popen([*FELIS, "monitor", "--robot", "cat", "--port", vb.port, "--csv", str(out),
@@ -139,7 +140,7 @@ def test_monitor_starts_with_a_missing_servo_and_a_signal_ends_it_with_a_complet
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 3000):
             time.sleep(0.05)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         stdout, stderr = proc.communicate(timeout=20)
         assert proc.returncode == 130, (stdout, stderr)
         assert [_read(vb.port, i, "torque_enable") for i in range(1, 13) if i != 3] == [0] * 11  # never powered
