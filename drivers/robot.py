@@ -344,6 +344,13 @@ class DynamixelRobot(RobotBase):
             res = self.bus.sync_read(self.ids, addr, len(want), fast=False, retries=2)
         self._mapped = np.array([res.data[i] == want for i in self.ids])
 
+    @property
+    def tick_block_bytes(self) -> int:
+        """Bytes read per servo each tick: the Indirect Addressing block (`TICK_ITEMS`) where every servo
+        has it mapped, else the plain present current/velocity/position block."""
+        mapped = bool(self._indirect) and bool(self._mapped.all())
+        return _TICK_DTYPE.itemsize if mapped else STATE_BLOCK[1]
+
     # ------------------------------------------------------------------ tick
     def _read_block(self, require_all: bool = False) -> np.ndarray:
         ids = self.ids
@@ -357,24 +364,29 @@ class DynamixelRobot(RobotBase):
         if stale.all() or (require_all and stale.any()):
             names = [f"{j.name} (ID {j.servo_id})" for j, s in zip(self.spec.joints, stale, strict=True) if s]
             raise CommError(f"no reply from {', '.join(names)} on {self.bus.port_name}")
-        ok = ~stale
-        raw = np.frombuffer(b"".join(res.data[i] for i, s in zip(ids, stale, strict=True) if not s),
+        ok_all = not stale.any()
+        ok = slice(None) if ok_all else ~stale  # a slice where every servo answered: views, no masks
+        data = res.data
+        raw = np.frombuffer(b"".join(data[i] for i in ids) if ok_all else
+                            b"".join(data[i] for i, s in zip(ids, stale, strict=True) if not s),
                             dtype=_TICK_DTYPE if mapped else _BLOCK_DTYPE)
+        good, raw_good = ok, raw
         if mapped:
             torque = raw["torque"] != 0
-            # a rebooted servo's RAM is back to factory values: its Indirect Addresses point at the data
-            # area itself, which reads as zeros, so its whole block is zero (position 0 included)
-            reboot = ~torque & (raw["position"] == 0) & (raw["velocity"] == 0) & (raw["current"] == 0)
-            expect = self._torque[ok]
-            self._torque_lost[ok] = expect & ~torque
-            self._rebooted[ok] = expect & reboot
+            self._torque_lost[ok] = self._torque[ok] & ~torque
             self._tripped[ok] = raw["watchdog"] == WATCHDOG_TRIPPED
             self._hw[ok] = raw["hw"]
-            good = ok.copy()
-            good[ok] = ~reboot  # a rebooted servo's block holds no position: keep the last one
-            raw_good = raw[~reboot]
-        else:
-            good, raw_good = ok, raw
+            if torque.all():
+                self._rebooted[ok] = False
+            else:
+                # a rebooted servo's RAM is back to factory values: its Indirect Addresses point at the data
+                # area itself, which reads as zeros, so its whole block is zero (position 0 included)
+                reboot = ~torque & (raw["position"] == 0) & (raw["velocity"] == 0) & (raw["current"] == 0)
+                self._rebooted[ok] = self._torque[ok] & reboot
+                if reboot.any():  # its block holds no position: keep the last one
+                    good = ~stale
+                    good[~stale] = ~reboot
+                    raw_good = raw[~reboot]
         self._q[good] = ((raw_good["position"] - 2048.0) * RAD_PER_TICK - self._b[good]) / self._k[good]
         self._dq[good] = raw_good["velocity"] * RAD_S_PER_VELOCITY_UNIT / self._k[good]
         self._effort[good] = raw_good["current"] * self._torque_per_unit[good] * self._k[good]

@@ -190,6 +190,7 @@ TEMPERATURE_C = 32
 STALL_CURRENT_A = {"XL330-M288-T": 1.47, "XM430-W350-T": 2.3}
 CENTRE = 2048
 SPIN_S = 0.0003  # wire-time: sleep until this long before a reply is due, then spin
+HOUSEKEEPING_S = 0.001  # the server thread checks the servos' own clocks (Bus Watchdog, timed faults) this often
 
 # control-table addresses the emulator acts on
 ID, BAUD, RETURN_DELAY, DRIVE_MODE, OPERATING_MODE, HOMING_OFFSET, MOVING_THRESHOLD = 7, 8, 9, 10, 11, 20, 24
@@ -431,8 +432,22 @@ class VirtualServo:
     def _map_indirect(self) -> None:
         """The address each Indirect Data byte stands for, from the Indirect Address items."""
         if self.indirect is not None:
-            a0, _, n = self.indirect
+            a0, d0, n = self.indirect
             self._targets = [_U16.unpack_from(self.mem, a0 + 2 * k)[0] for k in range(n)]
+            # runs of consecutive targets, so a read copies slices, not bytes: (first k, last k + 1, target
+            # of the first or -1 for bytes that read 0: the data area itself, or past the table)
+            runs: list[list[int]] = []
+            size = len(self.mem)
+            for k, t in enumerate(self._targets):
+                t = t if t < size and not d0 <= t < d0 + n else -1
+                last = runs[-1] if runs else None
+                if last is not None and last[1] == k and (
+                        (t == -1 and last[2] == -1) or (t != -1 and last[2] != -1 and t == last[2] + k - last[0])):
+                    last[1] = k + 1
+                else:
+                    runs.append([k, k + 1, t])
+            self._runs = [tuple(r) for r in runs]
+            self._gathers: dict[tuple[int, int], list[tuple[int, int]]] = {}
 
     def _indirect_overlap(self, addr: int, length: int) -> bool:
         ind = self.indirect
@@ -676,14 +691,26 @@ class VirtualServo:
             self._advance()
         if not self._indirect_overlap(addr, length):
             return 0, bytes(mem[addr: addr + length])
-        out = bytearray(mem[addr: addr + length])
-        d0 = self.indirect[1]
-        d1 = d0 + self.indirect[2]
-        targets, n = self._targets, len(mem)
-        for k in range(max(addr, d0), min(addr + length, d1)):
-            t = targets[k - d0]
-            out[k - addr] = mem[t] if t < n and not d0 <= t < d1 else 0  # the data area itself reads 0
-        return 0, bytes(out)
+        plan = self._gathers.get((addr, length))
+        if plan is None:
+            plan = self._gathers[(addr, length)] = self._gather_plan(addr, length)
+        return 0, b"".join([mem[a:b] if a >= 0 else bytes(b) for a, b in plan])
+
+    def _gather_plan(self, addr: int, length: int) -> list[tuple[int, int]]:
+        """Slices of memory that make up a read overlapping the Indirect Data area, in order: (start, end)
+        of memory, or (-1, n) for n bytes that read 0 (the data area itself, or past the table)."""
+        d0, n = self.indirect[1], self.indirect[2]
+        plan: list[tuple[int, int]] = []
+        if addr < d0:
+            plan.append((addr, d0))
+        lo, hi = max(addr, d0) - d0, min(addr + length, d0 + n) - d0  # Indirect Data indices read
+        for k0, k1, t in self._runs:
+            a, b = max(k0, lo), min(k1, hi)
+            if a < b:
+                plan.append((t + a - k0, t + b - k0) if t >= 0 else (-1, b - a))
+        if addr + length > d0 + n:
+            plan.append((d0 + n, addr + length))
+        return plan
 
     def _write_inst(self, params: bytes) -> tuple[int, bytes]:
         if len(params) < 3:
@@ -1338,11 +1365,14 @@ class VirtualBus:
         poller.register(self._master, select.POLLIN)
         poller.register(self._wake_r, select.POLLIN)
         reader = P.PacketReader()
-        last_byte = 0.0
+        last_byte = last_housekeeping = 0.0
         while not self._halt:
             self._flush_due()
             with self.lock:
-                self.housekeeping()
+                t = time.perf_counter()
+                if t - last_housekeeping >= HOUSEKEEPING_S:  # not after every packet of a busy bus
+                    self.housekeeping()
+                    last_housekeeping = t
                 busy = self._busy()
             timeout = self._poll_timeout(reader.pending, last_byte)
             events = poller.poll(min(timeout, 5) if busy else timeout)

@@ -83,6 +83,29 @@ def test_indirect_writes_act_on_the_target_with_its_rules(cat_bus):
     assert s.get("indirect_data_7") == 0  # an entry still at its factory address (itself) reads 0
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_any_indirect_map_reads_byte_for_byte_as_its_targets(seed):
+    """Random maps (runs, gaps, entries left at the data area itself) and reads at any offset and length
+    in the Indirect Data area: each byte is its target's, and 0 where the target is the data area."""
+    rng = np.random.default_rng(seed)
+    s = VirtualServo("XM430-W350-T", 1, BAUD)
+    a0, d0, n = s.indirect
+    for k in range(n):
+        r = rng.random()
+        target = d0 + k if r < 0.2 else int(rng.integers(64, 147)) if r < 0.6 else 64 + k  # itself, random, a run
+        assert s.write(a0 + 2 * k, target.to_bytes(2, "little")) == 0, target
+    _write(s, "goal_position", 1234)
+    _write(s, "led", 1)
+    targets = [int.from_bytes(s.read_block(a0 + 2 * k, 2)[1], "little") for k in range(n)]
+    for _ in range(50):
+        start = int(rng.integers(d0, d0 + n))
+        length = int(rng.integers(1, d0 + n - start + 1))
+        err, data = s.read_block(start, length)
+        want = bytes(0 if d0 <= t < d0 + n else s.read_block(t, 1)[1][0]
+                     for t in targets[start - d0: start - d0 + length])
+        assert err == 0 and data == want, (start, length)
+
+
 # --------------------------------------------------------------------------------- Bus Watchdog
 def test_bus_watchdog_trips_after_its_time_out_and_not_before():
     clock = Clock()
