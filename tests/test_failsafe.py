@@ -308,6 +308,15 @@ def test_the_imu_port_given_as_the_bus_is_named_as_swapped(tmp_path):
     assert r.stderr.count("\n") == 1 and "swapped" in r.stderr
 
 
+@pytest.mark.parametrize("command", [("scan",), ("read", "1", "present_position"), ("monitor", "--duration", "1")])
+def test_a_bench_command_on_the_imu_port_names_the_ports_as_swapped(command):
+    with spawn("cat", sim=True) as vb:
+        r = subprocess.run([*FELIS, *command, "--port", vb.imu_port], env=_env(), capture_output=True, text=True,
+                           timeout=60)
+    assert r.returncode == 1 and r.stdout == "", (r.stdout, r.stderr)
+    assert r.stderr.count("\n") == 1 and "BNO08x UART-RVC IMU frames" in r.stderr and "swapped" in r.stderr
+
+
 def test_torque_is_read_back_on_close(cat_bus):
     with DynamixelRobot(load_spec("cat"), cat_bus.port, BAUD) as robot:
         robot.arm()

@@ -76,8 +76,11 @@ def _baud(text: str) -> int:
 
 # ----------------------------------------------------------------------------- bus access
 @contextlib.contextmanager
-def open_bus(args, *, sim: bool = False, retries: int = 1) -> Iterator:
-    """The DynamixelBus for ``--port``; ``virtual`` spawns a virtual bus for ``--robot``."""
+def open_bus(args, *, sim: bool = False, retries: int = 1, quiet_check: bool = True) -> Iterator:
+    """The DynamixelBus for ``--port``; ``virtual`` spawns a virtual bus for ``--robot``.
+
+    ``quiet_check``: listen 50 ms first and refuse a port that talks unprompted (the IMU's, given as the
+    bus: `DynamixelBus.check_quiet`). The emergency stop skips it: it sends whatever it hears."""
     from felis.drivers.bus import DynamixelBus
 
     port = args.port or os.environ.get("FELIS_PORT")
@@ -91,6 +94,8 @@ def open_bus(args, *, sim: bool = False, retries: int = 1) -> Iterator:
             port = vb.port
             args._imu_port = vb.imu_port
         bus = stack.enter_context(DynamixelBus(port, args.baud, retries=retries))
+        if quiet_check:
+            bus.check_quiet()
         yield bus
 
 
@@ -268,7 +273,7 @@ def cmd_torque(args) -> int:
     each servo's Goal Position is set to its Present Position first (no jump), then torque on, read back.
     """
     on = args.state == "on"
-    with open_bus(args) as bus:
+    with open_bus(args, quiet_check=on) as bus:  # the emergency stop never waits
         if args.id:
             ids = list(args.id)
         elif on:
