@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from felis.drivers.bus import CorruptReplyError, DynamixelBus, NoReplyError
+from felis.drivers.bus import CorruptReplyError, DynamixelBus, NoReplyError, ServoStatusError
 from felis.drivers.controltable import STATE_BLOCK, control_table
 from felis.drivers.imu import apply_mounting
 from felis.errors import CalibrationError, CommError, DescriptionError
@@ -248,9 +248,12 @@ class DynamixelRobot(RobotBase):
         self._torque_lost[:] = self._rebooted[:] = self._tripped[:] = False
         self._deadman_on = False
         self._set_torque(np.ones(self.spec.n, dtype=bool))
-        back = bus.sync_read(self.ids, _TORQUE_ENABLE, 1, fast=False, retries=2)
-        refused = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints
-                   if back.data[j.servo_id] is None or back.data[j.servo_id][0] != 1]
+        back = self._torque_enable()
+        silent = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints if back[j.servo_id] is None]
+        if silent:  # not known to be on, nor off: say so, not "did not come on"
+            raise CommError(f"could not read Torque Enable back from {', '.join(silent)} after arming "
+                            f"(no valid reply on {bus.port_name}); torque is being switched off")
+        refused = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints if back[j.servo_id] != 1]
         if refused:
             hw = []
             for j in self.spec.joints:
@@ -298,13 +301,30 @@ class DynamixelRobot(RobotBase):
             self.bus.sync_write(_BUS_WATCHDOG, 1, {i: b"\x00" for i in self.ids})
             self._deadman_on = False
         for _ in range(3):
-            back = self.bus.sync_read(self.ids, _TORQUE_ENABLE, 1, fast=False, retries=2)
-            on = [i for i in self.ids if back.data[i] is not None and back.data[i][0]]
+            back = self._torque_enable()
+            on = [i for i in self.ids if back[i]]
             if not on:
-                self.torque_off_verified = not back.stale
+                self.torque_off_verified = None not in back.values()
                 return
             self.bus.sync_write(_TORQUE_ENABLE, 1, {i: b"\x00" for i in on})
         self.torque_off_verified = False
+
+    def _torque_enable(self) -> dict[int, int | None]:
+        """Torque Enable of every servo, by sync read; a servo whose reply was lost or corrupt is asked
+        again on its own (up to 3 times); None where no valid reply came."""
+        res = self.bus.sync_read(self.ids, _TORQUE_ENABLE, 1, fast=False, retries=2)
+        out = {i: (None if res.data[i] is None else res.data[i][0]) for i in self.ids}
+        for i in [i for i, v in out.items() if v is None]:
+            for _ in range(3):
+                try:
+                    out[i] = self.bus.read_raw(i, _TORQUE_ENABLE, 1)[0]
+                    break
+                except ServoStatusError:
+                    continue
+                except CommError as e:
+                    if e.fatal:
+                        return out
+        return out
 
     # ------------------------------------------------------------------ fail-safe set-up
     def _clear_watchdog(self, warn: bool) -> None:
@@ -363,7 +383,8 @@ class DynamixelRobot(RobotBase):
         stale = np.array([res.data[i] is None for i in ids])
         if stale.all() or (require_all and stale.any()):
             names = [f"{j.name} (ID {j.servo_id})" for j, s in zip(self.spec.joints, stale, strict=True) if s]
-            raise CommError(f"no reply from {', '.join(names)} on {self.bus.port_name}")
+            raise CommError(f"no valid reply from {', '.join(names)} on {self.bus.port_name} (lost or corrupt, "
+                            "retried)")
         ok_all = not stale.any()
         ok = slice(None) if ok_all else ~stale  # a slice where every servo answered: views, no masks
         data = res.data

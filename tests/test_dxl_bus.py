@@ -431,3 +431,22 @@ def test_return_delay_warning_names_the_fix(cat_bus):
     cat_bus.servo(7).set("return_delay_time", 250)  # factory setting: 500 µs per reply
     with _robot(cat_bus) as robot:
         assert any("servo 7" in w and "500 µs" in w and "return_delay_time 0" in w for w in robot.warnings)
+
+
+def test_a_late_reply_is_never_taken_as_the_next_answer(cat_bus):
+    """A reply that comes after its time-out is discarded before the next transaction (the SDK clears the
+    input before it sends): parsed, it would be a valid status packet from the same servo and of the same
+    length, and the next read would return the previous item's value."""
+    s = cat_bus.servo(1)
+    s.set("goal_position", 3000)
+    present = s.get("present_position")
+    assert abs(present - 3000) > 100  # torque off: the horn is not at the goal
+    with DynamixelBus(cat_bus.port, BAUD, retries=0) as b:
+        b.ping(1)
+        cat_bus.faults.delay_ms = 40  # every reply now comes after its time-out
+        with pytest.raises(NoReplyError):
+            b.read_raw(1, 132, 4)  # Present Position
+        time.sleep(0.1)  # its reply arrives late and waits in the input
+        cat_bus.faults.delay_ms = 0
+        got = int.from_bytes(b.read_raw(1, 116, 4), "little")  # Goal Position, same length
+        assert got == 3000, f"read {got}: the late Present Position reply ({present}) taken as the answer"

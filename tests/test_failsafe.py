@@ -194,6 +194,39 @@ def test_the_next_run_clears_a_tripped_bus_watchdog_with_a_warning(vbus, tmp_pat
     assert _servo_items(vbus.port, "bus_watchdog") == [0] * 12
 
 
+# --------------------------------------------------------------------------------- bad communication, told
+def test_the_run_summary_shows_bad_communication(tmp_path):
+    """Corrupt replies (finding 10): the console names read failures, stale ticks, retries, timeouts and
+    corrupt replies, as the log does, instead of only the overruns."""
+    log = tmp_path / "c.mcap"
+    with spawn("cat", faults="corrupt=0.05,seed=1") as vb:  # 1 reply in 20 has a byte flipped
+        r = subprocess.run([*FELIS, "run", "stand", "--robot", "cat", "--backend", "dxl", "--port", vb.port,
+                            "--duration", "2", "--log", str(log)], cwd=tmp_path, env=_env(), capture_output=True,
+                           text=True, timeout=60)
+    line = next((ln for ln in r.stdout.splitlines() if ln.startswith("communication: ")), None)
+    assert line is not None, (r.stdout, r.stderr)
+    counts = {k: int(v) for v, k in re.findall(r"(\d+) (read failures|stale ticks|retries|timeouts|corrupt replies)",
+                                                line)}
+    assert len(counts) == 5 and counts["retries"] > 0, line  # a flipped byte: a corrupt reply, or a time-out
+    assert counts["corrupt replies"] + counts["timeouts"] > 0, line
+    run = log_info(log)["summary"]["run"]
+    assert (run["read_failures"], run["stale_ticks"]) == (counts["read failures"], counts["stale ticks"])
+    assert "torque off: read back as 0 on every servo" in r.stdout
+
+
+def test_a_port_that_vanishes_mid_run_is_a_comm_lost_event_and_a_failure(tmp_path):
+    log = tmp_path / "v.mcap"
+    with spawn("cat", faults="close_after=2.5") as vb:
+        r = subprocess.run([*FELIS, "run", "stand", "--robot", "cat", "--backend", "dxl", "--port", vb.port,
+                            "--duration", "20", "--log", str(log)], cwd=tmp_path, env=_env(), capture_output=True,
+                           text=True, timeout=60)
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert r.stderr.startswith("error: run stopped: comm lost") and r.stderr.count("\n") == 1, r.stderr
+    info = log_info(log)
+    assert info["summary"]["run"]["stopped"].startswith("comm lost")
+    assert info["events"].get("comm_lost") == 1
+
+
 # --------------------------------------------------------------------------------- a second program
 def test_a_second_program_on_the_port_is_refused_and_the_run_is_unaffected(vbus, tmp_path):
     """20 attempts to open the port while a run holds it: each refused with one line naming the run's
