@@ -758,6 +758,11 @@ class DynamixelBus:
             got, res = self._call(run)
         if res != sdk.COMM_SUCCESS:
             self.failed_transactions += 1
+            # one packet carried every servo's reply: each was lost, to a time-out or a corrupt packet
+            lost = "timeouts" if res == sdk.COMM_RX_TIMEOUT else "corrupt"
+            for i in ids:
+                st = self._stats(i)
+                setattr(st, lost, getattr(st, lost) + 1)
             return {}  # the caller retries these servos with a plain sync read
         self._account(ids, got)
         return got
