@@ -67,6 +67,7 @@ TICK_ITEMS = (_TORQUE_ENABLE, 70, _BUS_WATCHDOG, *range(STATE_BLOCK[0], STATE_BL
 _TICK_DTYPE = np.dtype([("torque", "u1"), ("hw", "u1"), ("watchdog", "u1"), ("current", "<i2"),
                         ("velocity", "<i4"), ("position", "<i4")])
 BUS_WATCHDOG_S = 0.1  # the deadman: servos stop this long after the host's last packet
+SETUP_RETRIES = 4  # extra tries of a read every servo must answer (arming): one-off, so a noisy bus gets more
 WATCHDOG_TRIPPED = 0xFF  # Bus Watchdog reads -1 once tripped
 
 
@@ -375,11 +376,12 @@ class DynamixelRobot(RobotBase):
     def _read_block(self, require_all: bool = False) -> np.ndarray:
         ids = self.ids
         mapped = bool(self._indirect) and bool(self._mapped.all())
+        retries = SETUP_RETRIES if require_all else None
         if mapped:
             data_addr = next(iter(self._indirect.values()))[1]
-            res = self.bus.sync_read(ids, data_addr, _TICK_DTYPE.itemsize, retries=2 if require_all else None)
+            res = self.bus.sync_read(ids, data_addr, _TICK_DTYPE.itemsize, retries=retries)
         else:
-            res = self.bus.sync_read(ids, *STATE_BLOCK, retries=2 if require_all else None)
+            res = self.bus.sync_read(ids, *STATE_BLOCK, retries=retries)
         stale = np.array([res.data[i] is None for i in ids])
         if stale.all() or (require_all and stale.any()):
             names = [f"{j.name} (ID {j.servo_id})" for j, s in zip(self.spec.joints, stale, strict=True) if s]
