@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from felis.drivers.bus import DynamixelBus
+from felis.drivers.bus import DynamixelBus, port_holders
 from felis.drivers.virtual import spawn
 
 _SCRIPT = Path(sys.executable).with_name("felis")
@@ -149,6 +149,24 @@ def test_monitor_starts_with_a_missing_servo_and_a_signal_ends_it_with_a_complet
     assert rows and rows[-1]["id"] == "12"  # the last sample written whole
     assert {r["stale"] for r in rows if r["id"] == "3"} == {"True"}
     assert {r["stale"] for r in rows if r["id"] != "3"} == {"False"}
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_at_a_calibration_prompt_ends_it_with_nothing_written(tmp_path, vbus, sig):
+    env = dict(_env(), XDG_CONFIG_HOME=str(tmp_path / "config"))
+    proc = subprocess.Popen([*FELIS, "calibrate", "--robot", "cat", "--id", "t1", "--port", vbus.port],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not port_holders(vbus.port):  # connected, at its first prompt
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.1)
+    time.sleep(1.0)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 130, (out, err)
+    assert err.strip() == f"error: interrupted ({sig.name})"
+    assert [_read(vbus.port, i, "torque_enable") for i in range(1, 13)] == [0] * 12
+    assert not [f for f in (tmp_path / "config").rglob("*") if f.is_file()]  # no calibration file, no partial one
 
 
 # --------------------------------------------------------------------------------- one line for bad input
