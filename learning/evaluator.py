@@ -182,10 +182,10 @@ def local_ray_options(num_cpus: int | None) -> dict:
 
     ``_node_ip_address="127.0.0.1"`` alone is not enough on Linux: Ray 2.60 resolves a loopback node
     address to the machine's network address and its servers then listen on every interface (measured
-    with ``ss -ltn``: ``*:port``). With `RAY_LOCAL_ONLY_ENV` = 0 (`prefer_loopback_ray`), Ray keeps
-    127.0.0.1 and every listening socket is on it. The dashboard is off.
+    with ``ss -ltn``: ``*:port``). With `RAY_LOCAL_ONLY_ENV` = 0 (`prefer_loopback_ray`, called before
+    Ray is imported or started), Ray keeps 127.0.0.1 and every listening socket is on it. The dashboard
+    is off.
     """
-    prefer_loopback_ray()
     return {"num_cpus": num_cpus, "include_dashboard": False, "dashboard_host": "127.0.0.1",
             "_node_ip_address": "127.0.0.1", "log_to_driver": False}
 
