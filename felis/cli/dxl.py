@@ -80,7 +80,7 @@ def open_bus(args, *, sim: bool = False, retries: int = 1, quiet_check: bool = T
     """The DynamixelBus for ``--port``; ``virtual`` spawns a virtual bus for ``--robot``.
 
     ``quiet_check``: listen 50 ms first and refuse a port that talks unprompted (the IMU's, given as the
-    bus: `DynamixelBus.check_quiet`). The emergency stop skips it: it sends whatever it hears."""
+    bus: `DynamixelBus.check_quiet`). The emergency stop skips it: it never waits before it sends."""
     from felis.drivers.bus import DynamixelBus
 
     port = args.port or os.environ.get("FELIS_PORT")
