@@ -13,7 +13,8 @@ a GIL, as with real hardware. Three parts:
     median of per-pair ratios. felis is measured with its default (Fast Sync Read) and with plain
     sync read. Goal ≥ 0.8.
 (b) wire-time modelling at 4 Mbps, Return Delay 0: felis's achieved rate against the wire ceiling
-    of the bytes it puts on the bus per cycle (its 13-byte block) (10 bits per byte; ``shared/reference/dynamixel.md``).
+    of the bytes it puts on the bus per cycle, its 13-byte block included (10 bits per byte;
+    ``shared/reference/dynamixel.md``).
     Goal ≥ 0.5.
 (c) 1 % of replies dropped: 10 000 cycles, counting crashes (any exception) and stale ticks.
 
@@ -56,7 +57,7 @@ def bare_sdk(port_name: str, ids: list[int], seconds: float, indirect: tuple[int
         base, size = indirect[1], len(TICK_ITEMS)
     else:
         base, size = 126, 10
-    off = base - 126 + (3 if indirect else 0)  # where present current starts in the block
+    cur = base + 3 if indirect else base  # present current, then velocity (+2) and position (+6)
     reader = sdk.GroupSyncRead(port, ph, base, size)
     writer = sdk.GroupSyncWrite(port, ph, 116, 4)
     for i in ids:
@@ -74,9 +75,9 @@ def bare_sdk(port_name: str, ids: list[int], seconds: float, indirect: tuple[int
                     reader.getData(i, base, 1)
                     reader.getData(i, base + 1, 1)
                     reader.getData(i, base + 2, 1)
-                reader.getData(i, 126 + off, 2)
-                reader.getData(i, 128 + off, 4)
-                goal.append(reader.getData(i, 132 + off, 4))
+                reader.getData(i, cur, 2)
+                reader.getData(i, cur + 2, 4)
+                goal.append(reader.getData(i, cur + 6, 4))
             for i, g in zip(ids, goal, strict=True):
                 writer.changeParam(i, [g & 0xFF, (g >> 8) & 0xFF, (g >> 16) & 0xFF, (g >> 24) & 0xFF])
             writer.txPacket()
