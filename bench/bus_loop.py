@@ -30,8 +30,8 @@ import time
 
 import dynamixel_sdk as sdk
 
-from felis.drivers.controltable import control_table
-from felis.drivers.robot import TICK_ITEMS, DynamixelRobot
+from felis.drivers.dynamixel.controltable import control_table
+from felis.drivers.dynamixel.robot import TICK_ITEMS, DynamixelRobot
 from felis.drivers.virtual import spawn
 from felis.errors import CommError
 from felis.hal import Command

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main() -> int:
-    from felis.learning.motion_features import (
+    from felis.learning.landing.features import (
         FEATURE_BODIES,
         MotionRecorder,
         Pca,

@@ -22,10 +22,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main() -> int:
-    from felis.learning import armkin
-    from felis.learning.ik_data import make_corpus, split
-    from felis.learning.ik_eval import _batch_windows, closed_form_rule
-    from felis.learning.ik_solver import IkSolver
+    from felis.controllers import armkin
+    from felis.learning.ik.data import make_corpus, split
+    from felis.learning.ik.evaluate import _batch_windows, closed_form_rule
+    from felis.learning.ik.solver import IkSolver
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=2000)

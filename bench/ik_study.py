@@ -43,10 +43,10 @@ REFERENCE = "lstm64-5f"
 
 
 def main() -> int:
-    from felis.learning.ik_data import make_corpus, split
-    from felis.learning.ik_eval import evaluate
-    from felis.learning.ik_run import IkTrainConfig, train_ik
-    from felis.learning.ik_solver import IkSolver
+    from felis.learning.ik.data import make_corpus, split
+    from felis.learning.ik.evaluate import evaluate
+    from felis.learning.ik.run import IkTrainConfig, train_ik
+    from felis.learning.ik.solver import IkSolver
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--epochs", type=int, default=10)

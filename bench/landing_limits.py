@@ -88,7 +88,7 @@ G = 9.81
 # ----------------------------------------------------------------------------------------- the model
 def make_sim(speed: float = 1.0):
     """A `LandingSim` whose servos are ``speed``× faster (module doc)."""
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing.evaluate import LandingSim
     from felis.servos import servo_model
     from felis.sim import MujocoRobot
     from felis.sim.drops import standing_waist_height
@@ -172,7 +172,7 @@ def leg_loop(sign: int) -> np.ndarray:
 
 def stored_waypoints(orientation) -> np.ndarray | None:
     """The tuned rule's waypoints for ``orientation`` from landing_samples.json, if there is one."""
-    from felis.learning.landing_samples import DEFAULT_SAMPLES_PATH
+    from felis.learning.landing.samples import DEFAULT_SAMPLES_PATH
 
     try:
         doc = json.loads(DEFAULT_SAMPLES_PATH.read_text())
@@ -197,7 +197,7 @@ def measure(sim, orientation, height_m: float, speed: float, waypoints, duration
     end of the run if it never touches down), the rotation (start − touchdown tilt, degrees), and the
     landing outcome."""
     from felis.controllers.landing import LandingController
-    from felis.learning.landing_nets import MAX_SPEED
+    from felis.learning.landing.nets import MAX_SPEED
     from felis.sim.drops import Drop
 
     fall = math.sqrt(2.0 * height_m / G)

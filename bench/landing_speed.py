@@ -40,9 +40,9 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from felis.learning import landing_train as lt
-from felis.learning.evaluator import _chunk, make_evaluator
-from felis.learning.landing_nets import random_simple
+from felis.learning.common.evaluator import _chunk, make_evaluator
+from felis.learning.landing import train as lt
+from felis.learning.landing.nets import random_simple
 
 GOAL = 1.7
 

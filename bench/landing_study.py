@@ -1,6 +1,6 @@
 """Seed 000 §6.6 reproduced: the paper's three experiments over several seeds, with baselines (issue 5).
 
-Every training here runs `felis.learning.landing_train.train_landing` with the paper's fitness (eq. 9 ×
+Every training here runs `felis.learning.landing.train.train_landing` with the paper's fitness (eq. 9 ×
 upright, ``fitness="eq9"``), at a smaller budget than the paper's (the settings are in the JSON). Success
 of a drop is the issue's `landed` rule (`felis.sim.drops`: feet only for 0.5 s after touchdown, then upper
 body within 30° of vertical and waist above half its standing height). Beside it the table gives the
@@ -44,9 +44,9 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / ".."))
 
-from felis.learning.landing_eval import run_drops, shipped_policy  # noqa: E402
-from felis.learning.landing_samples import TRAIN_HEIGHT_M, load_samples  # noqa: E402
-from felis.learning.landing_train import DEFAULT_SAMPLES, TrainConfig, train_landing  # noqa: E402
+from felis.learning.landing.evaluate import run_drops, shipped_policy  # noqa: E402
+from felis.learning.landing.samples import TRAIN_HEIGHT_M, load_samples  # noqa: E402
+from felis.learning.landing.train import DEFAULT_SAMPLES, TrainConfig, train_landing  # noqa: E402
 from felis.sim.drops import Drop  # noqa: E402
 
 UNTRAINED = ((160.0, 20.0, 0.0), (-110.0, 10.0, 0.0), (110.0, -30.0, 0.0), (-160.0, -20.0, 45.0))

@@ -39,7 +39,7 @@ def felis_episodes(robot: MujocoRobot, k: int, log_dir=None) -> float:
         drop(robot, 1.0, roll=180.0)
         log = None
         if log_dir is not None:
-            from felis.runlog import RunLog
+            from felis.logs.runlog import RunLog
 
             log = RunLog(log_dir / f"ep{i}.mcap", robot.spec)
         run_loop(robot, controller, duration=DURATION, rate_hz=RATE, log=log, keep_armed=True)

@@ -259,8 +259,8 @@ class CalibrationFile:
                 raise CalibrationError(f"{source}: {e}") from None
 
     def for_robot(self, spec: RobotSpec):
-        """The host-side `felis.drivers.robot.Calibration` for ``spec`` (checks the file first)."""
-        from felis.drivers.robot import Calibration
+        """The host-side `felis.drivers.dynamixel.robot.Calibration` for ``spec`` (checks the file first)."""
+        from felis.drivers.dynamixel.robot import Calibration
 
         self.check(spec)
         n = spec.n

@@ -31,8 +31,8 @@ from felis.calib.calfile import (
     save,
 )
 from felis.calib.joints import check_servos, write_eeprom
-from felis.drivers.bus import DynamixelBus, baud_code
-from felis.drivers.controltable import control_table
+from felis.drivers.dynamixel.bus import DynamixelBus, baud_code
+from felis.drivers.dynamixel.controltable import control_table
 from felis.errors import CalibrationError, CommError, ParameterError
 from felis.spec import RobotSpec
 

@@ -34,7 +34,7 @@ from felis.calib.calfile import (
 )
 from felis.calib.operator import Operator, SweepRow
 from felis.calib.setup import select_joints
-from felis.drivers.bus import DynamixelBus, NoReplyError
+from felis.drivers.dynamixel.bus import DynamixelBus, NoReplyError
 from felis.errors import CalibrationError, CommError
 from felis.spec import JointSpec, RobotSpec
 
@@ -47,7 +47,7 @@ def _i32(b: bytes) -> int:
 
 def check_servos(bus: DynamixelBus, joints: list[JointSpec]) -> dict[str, tuple[str, int]]:
     """Ping every joint's servo: {joint: (model, firmware)}; one line naming the missing or wrong ones."""
-    from felis.drivers.bus import CorruptReplyError
+    from felis.drivers.dynamixel.bus import CorruptReplyError
 
     out, missing, wrong = {}, [], []
     for j in joints:

@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from felis.calib.operator import Operator
-from felis.drivers.bus import SDK_BAUDS, CorruptReplyError, DynamixelBus, Found, baud_code
+from felis.drivers.dynamixel.bus import SDK_BAUDS, CorruptReplyError, DynamixelBus, Found, baud_code
 from felis.errors import CalibrationError, CommError, ParameterError
 from felis.spec import JointSpec, RobotSpec
 

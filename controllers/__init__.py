@@ -18,7 +18,7 @@ def _arm_track(trajectory="figure8", weights=None, lead_in: float | None = None)
     """The arm following a tool-point trajectory (a builtin name, a CSV file or a Trajectory) with the
     learned IK pipeline (weights: the shipped ones unless a file is given)."""
     from felis.controllers.arm_track import LEAD_IN, ArmTrackController, trajectory_from
-    from felis.learning.ik_solver import IkSolver
+    from felis.learning.ik.solver import IkSolver
 
     return ArmTrackController(trajectory_from(trajectory), IkSolver.load(weights),
                               lead_in=LEAD_IN if lead_in is None else lead_in)
@@ -61,7 +61,7 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
     reaction (none, brace, crouch, step, or selector: the shipped strategy selector; ``selector`` a
     selector file). ``body`` is the robot's `felis.bodymodel.BodyModel`; the CLI passes it in. ``gate``
     feeds the monitor's gait gate: ``clock`` the base's own gait clock, ``phase`` the learned phase
-    estimator (`felis.learning.phase_estimator`, shipped weights) reading the joints, ``none`` nothing."""
+    estimator (`felis.learning.phase.estimator`, shipped weights) reading the joints, ``none`` nothing."""
     from felis.controllers.balance import BalanceMonitor
     from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController
 
@@ -70,7 +70,7 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
     if base not in ("stand", "step-in-place"):
         raise ParameterError(f"balance: base must be stand or step-in-place, got {base!r}")
     if reaction == "selector":
-        from felis.learning.balance_select import load_selector
+        from felis.learning.balance.selector import load_selector
 
         react = load_selector(selector, feature_names=FEATURES)
     elif reaction in REACTIONS:
@@ -84,7 +84,7 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
         monitor.gait = lambda t: None  # not the base's clock either
     ctl = ReactiveController(make_controller(base), monitor, react)
     if gate == "phase":
-        from felis.learning.phase_estimator import PhaseEstimator
+        from felis.learning.phase.estimator import PhaseEstimator
 
         est = PhaseEstimator()
         monitor.gait = est.gait
@@ -96,7 +96,7 @@ def _landing(policy=None, drop_height: float | None = None) -> Controller:
     """The falling cat's evolved landing nets (seed 000): the shipped policy unless a file is given;
     ``drop_height`` (m) where the robot reports no height (hardware: free-fall prediction)."""
     from felis.controllers.landing import LandingController
-    from felis.learning.landing_nets import DEFAULT_POLICY, load_policy
+    from felis.learning.landing.nets import DEFAULT_POLICY, load_policy
 
     behaviour, _ = load_policy(DEFAULT_POLICY if policy is None else policy)  # PolicyError: one line
     return LandingController(behaviour, drop_height=drop_height)

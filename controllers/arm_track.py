@@ -1,4 +1,4 @@
-"""Arm tool-point tracking with the learned IK pipeline (`felis.learning.ik_solver`, seed 001).
+"""Arm tool-point tracking with the learned IK pipeline (`felis.learning.ik.solver`, seed 001).
 
 The controller first moves the arm from where it is to the IK solution of the trajectory's first
 point (minimum-jerk, ``lead_in`` seconds), then streams the trajectory: for every 10 ms of trajectory
@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from felis.controllers import armkin
 from felis.controllers.pose import min_jerk
 from felis.errors import ParameterError
 from felis.hal import Command, State
-from felis.learning import armkin
 from felis.spec import RobotSpec
 
 ARM_JOINTS = armkin.JOINTS
@@ -38,7 +38,7 @@ def trajectory_from(source):
     object with ``t`` and ``p`` (returned as is)."""
     if hasattr(source, "t") and hasattr(source, "p"):
         return source
-    from felis.learning.ik_data import BUILTINS, builtin_trajectory, read_trajectory_csv
+    from felis.learning.ik.data import BUILTINS, builtin_trajectory, read_trajectory_csv
 
     text = str(source)
     if text in BUILTINS:
@@ -64,7 +64,7 @@ class ArmTrackController:
         if not (np.isfinite(lead_in) and lead_in >= 0):
             raise ParameterError(f"arm-track: lead-in must be ≥ 0 s, got {lead_in}")
         if solver is None:
-            from felis.learning.ik_solver import IkSolver
+            from felis.learning.ik.solver import IkSolver
 
             solver = IkSolver.load()
         self.t = t - t[0]
@@ -126,7 +126,7 @@ class ArmTrackController:
 
     def summary(self) -> dict:
         """Frames streamed, IK error of the commands and measured tracking error (mm), flagged targets."""
-        from felis.learning.ik_eval import error_stats
+        from felis.learning.ik.evaluate import error_stats
 
         return {"frames": self.frames, "unreachable": self.unreachable, "invalid": self.invalid,
                 "command_error": error_stats(np.array(self.cmd_err)),

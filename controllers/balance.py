@@ -39,7 +39,7 @@ Per tick, from the HAL state, in a world-aligned frame (z up):
 
 The gait gate: ``monitor.gait`` is a callable t → gait (any object with ``stepping`` and ``swing``,
 e.g. `felis.controllers.stepping.Gait`) or None. The stepping controller feeds it from its own clock;
-the learned phase estimator (`felis.learning.phase_estimator`) can feed it instead. With the BoS of the
+the learned phase estimator (`felis.learning.phase.estimator`) can feed it instead. With the BoS of the
 feet down, two feet down during a trot make the BoS the line between them and ξ is off it all the time:
 without the gate every step would raise an alarm; with it the swinging feet are part of the BoS. With
 every foot in the BoS the gate is what keeps a pushed trot quiet: the alarm needs `gait_ticks`

@@ -1,7 +1,7 @@
 """felis: ROS-free robot control for Dynamixel servos and MuJoCo through one HAL.
 
 Core (this package): robot descriptions (`felis.spec`), HAL types (`felis.hal`), the control loop
-(`felis.loop`) and its safety layer (`felis.safety`), run logs (`felis.runlog`).
+(`felis.loop`) and its safety layer (`felis.safety`), run logs (`felis.logs.runlog`).
 Subpackages: `felis.sim` (MuJoCo backend), `felis.drivers` (Dynamixel bus), `felis.controllers`,
 `felis.learning`, `felis.calib`, `felis.cli`.
 """

@@ -13,7 +13,7 @@ Rules:
   signal: ``stopped: interrupted (SIGTERM)``.
 * Later signals while the command is unwinding are noted and do not raise: a second Ctrl-C must not
   cut the torque-off write in half. SIGKILL cannot be caught: that is what the servos' Bus Watchdog
-  is for (`felis.drivers.robot`).
+  is for (`felis.drivers.dynamixel.robot`).
 * The exit code of an interrupted command is 130 (`EXIT_INTERRUPTED`), whichever signal it was.
 """
 

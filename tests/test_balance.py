@@ -401,7 +401,7 @@ def test_controller_registry(body):
 
 def test_reactions_cut_falls_and_runs_are_deterministic():
     """The same pushes with and without a reaction, through 1 and 2 worker processes."""
-    from felis.learning.balance_eval import run_pushes, summarise
+    from felis.learning.balance.evaluate import run_pushes, summarise
 
     pushes = [Push("lower_body", 95, 0.62, 0.6, "stand"), Push("upper_body", 265, 0.55, 0.6, "stand"),
               Push("lower_body", 80, 0.7, 1.6, "step"), Push("upper_body", 10, 0.3, 0.7, "stand")]
@@ -461,7 +461,7 @@ def test_felis_eval_balance_through_the_virtual_bus(tmp_path, capsys):
 
 def test_felis_train_balance_tiny(tmp_path, capsys):
     from felis.cli.main import main
-    from felis.learning.balance_select import KnnSelector
+    from felis.learning.balance.selector import KnnSelector
 
     out = tmp_path / "sel.npz"
     assert main(["train", "balance", "--pushes", "random:40", "--seed", "2", "--workers", "2", "--out", str(out),

@@ -27,8 +27,8 @@ from felis.calib.eeprom import SHUTDOWN_MASK, apply, apply_calibration, check_se
 from felis.calib.joints import calibrate
 from felis.calib.operator import ScriptedOperator
 from felis.calib.setup import setup_motors
-from felis.drivers.bus import DynamixelBus
-from felis.drivers.robot import DynamixelRobot
+from felis.drivers.dynamixel.bus import DynamixelBus
+from felis.drivers.dynamixel.robot import DynamixelRobot
 from felis.drivers.virtual import Mount, VirtualBus, VirtualServo
 from felis.errors import CalibrationError
 from felis.servos import RAD_PER_TICK

@@ -14,7 +14,7 @@ import json
 import pytest
 from test_cli import felis, ok
 
-from felis.drivers.bus import DynamixelBus
+from felis.drivers.dynamixel.bus import DynamixelBus
 from felis.drivers.virtual import VirtualBus
 from felis.spec import load_spec
 

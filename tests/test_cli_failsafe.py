@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from felis.drivers.bus import DynamixelBus, port_holders
+from felis.drivers.dynamixel.bus import DynamixelBus, port_holders
 from felis.drivers.virtual import spawn
 
 _SCRIPT = Path(sys.executable).with_name("felis")

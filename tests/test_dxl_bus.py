@@ -20,8 +20,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from felis.drivers import protocol as P
-from felis.drivers.bus import (
+from felis.drivers.dynamixel import protocol as P
+from felis.drivers.dynamixel.bus import (
     CorruptReplyError,
     DynamixelBus,
     NoReplyError,
@@ -29,8 +29,8 @@ from felis.drivers.bus import (
     ServoStatusError,
     baud_code,
 )
-from felis.drivers.controltable import control_table
-from felis.drivers.robot import DynamixelRobot
+from felis.drivers.dynamixel.controltable import control_table
+from felis.drivers.dynamixel.robot import DynamixelRobot
 from felis.drivers.virtual import VirtualBus, VirtualServo
 from felis.errors import CommError, ParameterError
 from felis.hal import Command, Lifecycle

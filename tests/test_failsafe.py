@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from felis.drivers.bus import DynamixelBus, PortError, port_holders
-from felis.drivers.robot import BUS_WATCHDOG_S, DynamixelRobot
+from felis.drivers.dynamixel.bus import DynamixelBus, PortError, port_holders
+from felis.drivers.dynamixel.robot import BUS_WATCHDOG_S, DynamixelRobot
 from felis.drivers.virtual import VirtualBus, spawn
+from felis.logs.runlog import log_info
 from felis.loop import run_loop
-from felis.runlog import log_info
 from felis.spec import load_spec
 
 _SCRIPT = Path(sys.executable).with_name("felis")
@@ -319,7 +319,7 @@ def test_a_normal_run_ends_with_torque_off_read_back_and_the_watchdog_cleared(ca
 
 
 def _reboot_packet(dxl_id: int) -> bytes:
-    from felis.drivers import protocol as P
+    from felis.drivers.dynamixel import protocol as P
 
     return P.instruction(dxl_id, P.REBOOT)
 
@@ -421,7 +421,7 @@ def test_a_silent_imu_port_is_named_as_such(pty_pair):
 
 
 def test_an_imu_port_that_speaks_dynamixel_is_named_as_the_servo_bus(pty_pair):
-    from felis.drivers import protocol as P
+    from felis.drivers.dynamixel import protocol as P
     from felis.drivers.imu import ImuProtocolError, ImuReader
 
     master, port = pty_pair
@@ -452,7 +452,7 @@ def test_an_imu_that_streams_frames_passes(pty_pair):
 
 
 def test_looks_like_rvc_and_dynamixel():
-    from felis.drivers import protocol as P
+    from felis.drivers.dynamixel import protocol as P
     from felis.drivers.imu import encode_frame, looks_like_dynamixel, looks_like_rvc
 
     frames = b"".join(encode_frame(k, 0.0, 0.0, 0.0, (0.0, 0.0, 9.81)) for k in range(4))

@@ -16,7 +16,7 @@ from test_cli import felis, ok
 from felis.controllers.stepping import BLEND_S, SteppingController
 from felis.errors import ParameterError, PhaseError
 from felis.hal import State
-from felis.learning.gait_data import (
+from felis.learning.phase.data import (
     HELDOUT,
     TRAIN,
     GaitRecording,
@@ -27,7 +27,7 @@ from felis.learning.gait_data import (
     save_recordings,
     schedule_seconds,
 )
-from felis.runlog import RunLog
+from felis.logs.runlog import RunLog
 from felis.spec import load_spec
 
 # stand, trot at 2 Hz, change to 2.5 Hz, stand: the gait starts at BLEND_S, segments at 0.3/1.3/6.3/11.3 s

@@ -1,4 +1,4 @@
-"""IK demonstration data (felis.learning.ik_data): the posture rule, demonstrations, corpus, splits,
+"""IK demonstration data (felis.learning.ik.data): the posture rule, demonstrations, corpus, splits,
 network windows, angle encoding, files (npz corpus, CSV trajectories, run logs) and builtins."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
+from felis.controllers import armkin
+from felis.controllers.armkin import REACH, SHOULDER
 from felis.errors import LogError, ParameterError, TrajectoryError
-from felis.learning import armkin
-from felis.learning import ik_data as D
-from felis.learning.armkin import REACH, SHOULDER
+from felis.learning.ik import data as D
 
 SEED = 11
 
@@ -344,7 +344,7 @@ def test_builtin_errors():
 
 def _write_log(path, robot: str, q: np.ndarray):
     from felis.hal import State
-    from felis.runlog import RunLog
+    from felis.logs.runlog import RunLog
     from felis.spec import load_spec
 
     spec = load_spec(robot)

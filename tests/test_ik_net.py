@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from felis.errors import ParameterError, WeightsError
-from felis.learning import ik_net
-from felis.learning.ik_net import (
+from felis.learning.ik import net as ik_net
+from felis.learning.ik.net import (
     NetSpec,
     NumpyNet,
     arrays_to_torch,
@@ -28,7 +28,7 @@ from felis.learning.ik_net import (
     save_weights,
     torch_to_arrays,
 )
-from felis.learning.ik_train import TrainConfig, train_net
+from felis.learning.ik.train import TrainConfig, train_net
 
 MP = NetSpec("lstm", 3, hidden=16, layers=2, n_out=6, name="mp", in_offsets=(-10, -5, 0), out_offsets=(5, 10))
 PE = NetSpec("lstm", 5, hidden=12, layers=1, n_out=48, name="pe", in_offsets=(-10, -5, 0, 5, 10),
@@ -104,7 +104,7 @@ def test_net_spec_rejects_nonsense():
 
 
 def test_importing_ik_net_does_not_import_torch():
-    code = "import sys, felis.learning.ik_net as m; assert 'torch' not in sys.modules; print(m.NetSpec('mlp', 3).width)"
+    code = "import sys, felis.learning.ik.net as m; assert 'torch' not in sys.modules; print(m.NetSpec('mlp', 3).width)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
 

@@ -14,7 +14,8 @@ import pytest
 
 from felis.calib.imu import ImuMounting, apply_mounting, estimate_mounting, mounting_from_gravity
 from felis.cli.virtualbus import _imu_options
-from felis.drivers.bus import DynamixelBus
+from felis.drivers.dynamixel.bus import DynamixelBus
+from felis.drivers.dynamixel.robot import IMU_MAX_AGE_S, Calibration, DynamixelRobot
 from felis.drivers.imu import (
     RATE_HZ,
     G,
@@ -31,7 +32,6 @@ from felis.drivers.imu import (
     quat_rotate,
     rvc_from_quat,
 )
-from felis.drivers.robot import IMU_MAX_AGE_S, Calibration, DynamixelRobot
 from felis.drivers.virtual import VirtualBus, spawn
 from felis.errors import CalibrationError, ParameterError
 from felis.hal import Imu

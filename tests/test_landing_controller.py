@@ -16,8 +16,8 @@ import pytest
 from felis.controllers.landing import LandingController
 from felis.errors import ParameterError
 from felis.hal import Imu, State
-from felis.learning.landing_eval import LandingSim
-from felis.learning.landing_nets import LANDING_HEIGHT_M
+from felis.learning.landing.evaluate import LandingSim
+from felis.learning.landing.nets import LANDING_HEIGHT_M
 from felis.sim.drops import Drop
 from felis.spec import load_spec
 
@@ -120,7 +120,7 @@ def _one_line_error(r: subprocess.CompletedProcess, *needles: str) -> str:
 
 @pytest.fixture(scope="module")
 def policy(tmp_path_factory) -> Path:
-    from felis.learning.landing_nets import random_simple, save_policy
+    from felis.learning.landing.nets import random_simple, save_policy
 
     return save_policy(tmp_path_factory.mktemp("policy") / "random.npz", random_simple(np.random.default_rng(0)), {})
 
@@ -140,7 +140,7 @@ def test_cli_run_landing_drop_on_mujoco(tmp_path, policy):
 def test_cli_run_landing_drop_through_the_virtual_bus(tmp_path, policy):
     from mcap.reader import make_reader
 
-    from felis.runlog import read_log
+    from felis.logs.runlog import read_log
 
     out = _ok(_felis(tmp_path, "run", "landing", "--robot", "cat", "--height", "1", "--roll", "180",
                      "--policy", str(policy), "--backend", "dxl", "--port", "virtual", "--log", "drop.mcap", "--json"))

@@ -11,7 +11,7 @@ import pytest
 
 from felis.cli.landing import cmd_eval_landing, register
 from felis.errors import ParameterError
-from felis.learning.landing_eval import LandingSim, check_policy, run_drops, summarise
+from felis.learning.landing.evaluate import LandingSim, check_policy, run_drops, summarise
 from felis.sim.drops import (
     TILT_DEG,
     WAIST_FRACTION,
@@ -220,8 +220,8 @@ def test_shipped_policy_rights_the_demo_drop_that_passive_does_not():
     """The shipped policy (learning/weights/landing.npz) against holding still, on the demo's drop (1 m,
     tilted 56°) and on a drop it cannot right (upside down): what the policy adds, and where it stops."""
     from felis.cli.main import DEMO_DROP
-    from felis.learning.landing_eval import default_policy, shipped_policy
-    from felis.learning.landing_nets import load_policy
+    from felis.learning.landing.evaluate import default_policy, shipped_policy
+    from felis.learning.landing.nets import load_policy
 
     assert default_policy() == "shipped" and check_policy("shipped") == "shipped"
     load_policy(shipped_policy())  # a valid policy file
@@ -265,7 +265,7 @@ def test_cli_json_three_drops_same_with_1_and_2_workers(tmp_path, capsys):
 
 
 def test_cli_default_policy_and_text(capsys):
-    from felis.learning.landing_eval import default_policy
+    from felis.learning.landing.evaluate import default_policy
 
     args = _args(["--drops", "random:2", "--workers", "1"])
     assert args.policy is None and args.height is None  # the shipped policy when there is one, else passive

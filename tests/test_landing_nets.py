@@ -1,4 +1,4 @@
-"""Landing-controller nets, genome, ranking and policy files (`felis.learning.landing_nets`; seed 000 §5–6)."""
+"""Landing-controller nets, genome, ranking and policy files (`felis.learning.landing.nets`; seed 000 §5–6)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from felis.errors import FelisError, ParameterError
-from felis.learning import landing_nets as L
-from felis.learning.landing_nets import ComplexBehaviour, GeneUnit, PolicyError, SimpleBehaviour, SimpleResult
+from felis.learning.landing import nets as L
+from felis.learning.landing.nets import ComplexBehaviour, GeneUnit, PolicyError, SimpleBehaviour, SimpleResult
 
 
 def rng(seed: int = 0) -> np.random.Generator:

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from felis.errors import ParameterError
-from felis.learning.landing_nets import MAX_SPEED
-from felis.learning.landing_samples import (
+from felis.learning.landing.features import FEATURE_BODIES
+from felis.learning.landing.nets import MAX_SPEED
+from felis.learning.landing.samples import (
     STEPS,
     TRAIN_HEIGHT_M,
     TRAINING_ORIENTATIONS,
@@ -23,14 +24,13 @@ from felis.learning.landing_samples import (
     rule_from_waypoints,
     rule_score,
 )
-from felis.learning.motion_features import FEATURE_BODIES
 
 SHIPPED = Path(__file__).resolve().parents[1] / "learning" / "weights" / "landing_samples.json"
 
 
 @pytest.fixture(scope="module")
 def sim():
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing.evaluate import LandingSim
 
     s = LandingSim()
     yield s

@@ -5,7 +5,7 @@ from dataclasses import replace
 import pytest
 from conftest import load_bench
 
-from felis.learning import landing_train as lt
+from felis.learning.landing import train as lt
 
 
 @pytest.fixture(scope="module")

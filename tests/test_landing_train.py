@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from felis.errors import ParameterError
-from felis.learning import landing_train as lt
-from felis.learning.evaluator import Evaluator, ProcessPoolEvaluator, make_evaluator
-from felis.learning.landing_nets import ComplexBehaviour, load_policy, random_simple
+from felis.learning.common.evaluator import Evaluator, ProcessPoolEvaluator, make_evaluator
+from felis.learning.landing import train as lt
+from felis.learning.landing.nets import ComplexBehaviour, load_policy, random_simple
 
 STEPS = 40  # 0.4 s: a drop from 0.6 m lands after about 0.3 s
 HEIGHT = 0.6
@@ -48,7 +48,7 @@ def spine_rule(it, t):
 
 @pytest.fixture(scope="module")
 def samples():
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing.evaluate import LandingSim
 
     sim = LandingSim()
     try:
@@ -104,7 +104,7 @@ def test_process_pool_evaluator_keeps_job_order():
 def test_a_dying_worker_is_one_line():
     import os
 
-    from felis.learning.evaluator import EvaluatorError
+    from felis.learning.common.evaluator import EvaluatorError
 
     ev = ProcessPoolEvaluator(workers=2)
     try:
@@ -203,7 +203,7 @@ def test_score_of_the_sample_itself_has_zero_distance(samples):
 
 def test_rollouts_repeat_on_a_reused_sim(samples):
     """Workers reuse one sim for many rollouts: a rollout must not depend on what ran before."""
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing.evaluate import LandingSim
 
     task, _ = lt.make_task(TINY, samples)
     b = random_simple(np.random.default_rng(5))
@@ -219,8 +219,8 @@ def test_rollouts_repeat_on_a_reused_sim(samples):
 
 def test_short_rollout_matches_the_samples_rollout_at_full_length():
     """`_rollout` (any length, for quick runs) records what `landing_samples.rollout` does at STEPS."""
-    from felis.learning import landing_samples
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing import samples as landing_samples
+    from felis.learning.landing.evaluate import LandingSim
 
     b = random_simple(np.random.default_rng(2))
     sim = LandingSim()
@@ -340,7 +340,7 @@ def test_one_and_two_workers_give_identical_results(tmp_path, samples):
 
 def test_policy_file_loads_and_runs_in_the_landing_controller(tmp_path, samples):
     from felis.controllers.landing import LandingController
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing.evaluate import LandingSim
     from felis.sim.drops import Drop
 
     out, res = _train(tmp_path, samples)
@@ -419,7 +419,7 @@ def test_ray_evaluator_matches_the_process_pool(tmp_path, samples):
     inline). Ray comes with the `cluster` extra, which `make` installs: no skip."""
     import ray
 
-    from felis.learning.evaluator import RayEvaluator
+    from felis.learning.common.evaluator import RayEvaluator
 
     _, inline = _train(tmp_path, samples, name="inline")
     _, pool = _train(tmp_path, samples, replace(TINY, workers=2), name="pool")
@@ -444,7 +444,7 @@ GENERAL = replace(TINY, fitness="landing", generations_complex=1, generations_ge
 def test_landing_fitness_scores_each_clause_of_the_rule(samples):
     """fitness="landing": f is the rollout's `landing_score`; a cat dropped upright from 0.6 m on its feet
     scores near the top, one dropped upside down near the bottom, and the score agrees with `landed`."""
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing.evaluate import LandingSim
 
     task, _ = lt.make_task(replace(TINY, fitness="landing", steps=100), samples)
     sim = LandingSim()
@@ -476,7 +476,7 @@ def test_still_behaviour_holds_the_release_pose():
 
 
 def test_general_stage_trains_on_random_drops_and_ships_a_simple_behaviour(tmp_path, samples):
-    from felis.learning.landing_nets import SimpleBehaviour
+    from felis.learning.landing.nets import SimpleBehaviour
 
     seen = []
     out, res = _train(tmp_path, samples, GENERAL, progress=lambda *a: seen.append(a[:3]))
@@ -496,7 +496,7 @@ def test_general_stage_trains_on_random_drops_and_ships_a_simple_behaviour(tmp_p
 
 
 def test_one_net_mode_evolves_one_simple_behaviour_on_every_orientation(tmp_path, samples):
-    from felis.learning.landing_nets import SimpleBehaviour
+    from felis.learning.landing.nets import SimpleBehaviour
 
     cfg = replace(TINY, one_net=True, generations_simple=1, generations_complex=1)
     seen = []

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from felis.errors import ParameterError
-from felis.learning.motion_features import (
+from felis.learning.landing.features import (
     FEATURE_BODIES,
     MotionRecorder,
     Pca,

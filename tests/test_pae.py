@@ -1,5 +1,5 @@
-"""The periodic autoencoder with Fourier latent dynamics (`felis.learning.pae`) and its training
-(`felis.learning.phase_train`): the FFT parameterisation against sinusoids with known answers, the phase
+"""The periodic autoencoder with Fourier latent dynamics (`felis.learning.phase.pae`) and its training
+(`felis.learning.phase.train`): the FFT parameterisation against sinusoids with known answers, the phase
 layer set analytically, shapes, numpy inference, the weights file, deterministic and resumable training."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from felis.errors import ParameterError, PhaseError
-from felis.learning.pae import (
+from felis.learning.phase.pae import (
     PAE,
     PaeNumpy,
     fft_params,
@@ -29,7 +29,7 @@ from felis.learning.pae import (
     torch_to_arrays,
     window_time,
 )
-from felis.learning.phase_train import (
+from felis.learning.phase.train import (
     PhaseTrainConfig,
     cycle_period,
     evaluate_phase,

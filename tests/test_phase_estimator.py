@@ -1,4 +1,4 @@
-"""The online phase estimator (`felis.learning.phase_estimator`) and its figures (`felis.learning.phase_eval`):
+"""The online phase estimator (`felis.learning.phase.estimator`) and its figures (`felis.learning.phase.evaluate`):
 a tiny PAE trained here on a real MuJoCo gait recording for the mechanics, the shipped weights for what
 they must show."""
 
@@ -13,11 +13,11 @@ from felis.controllers.balance import BalanceMonitor
 from felis.controllers.stepping import SteppingController
 from felis.errors import PhaseError
 from felis.hal import State
-from felis.learning.gait_data import record_sim
-from felis.learning.pae import load_pae_numpy, save_pae
-from felis.learning.phase_estimator import DEFAULT_WEIGHTS, PhaseEstimator, calibrate, phase_track
-from felis.learning.phase_eval import gate_comparison, phase_metrics
-from felis.learning.phase_train import PhaseTrainConfig, train_phase
+from felis.learning.phase.data import record_sim
+from felis.learning.phase.estimator import DEFAULT_WEIGHTS, PhaseEstimator, calibrate, phase_track
+from felis.learning.phase.evaluate import gate_comparison, phase_metrics
+from felis.learning.phase.pae import load_pae_numpy, save_pae
+from felis.learning.phase.train import PhaseTrainConfig, train_phase
 from felis.sim.bodymodel import load_body_model
 from felis.sim.pushes import Push
 from felis.spec import load_spec
@@ -101,7 +101,7 @@ def test_estimator_refuses_mismatched_weights(tmp_path, tiny, spec):
     with pytest.raises(PhaseError, match="joints"):
         PhaseEstimator(tiny, joints=["a", "b"])
     # a PAE without the calibration
-    from felis.learning.pae import load_pae
+    from felis.learning.phase.pae import load_pae
 
     model, _ = load_pae(tiny)
     bare = tmp_path / "bare.npz"
@@ -215,14 +215,14 @@ def test_felis_train_and_eval_phase_tiny(tmp_path, capsys):
 ])
 def test_felis_eval_phase_bad_input_is_one_line(tmp_path, capsys, tiny, args, message):
     from felis.cli.main import main
-    from felis.learning.pae import load_pae
+    from felis.learning.phase.pae import load_pae
 
     model, _ = load_pae(tiny)
     bare = tmp_path / "bare.npz"
     save_pae(bare, model)
     train = tmp_path / "train.npz"
     if any("{train}" in a for a in args):  # a gait-data file without held-out recordings
-        from felis.learning.gait_data import save_recordings
+        from felis.learning.phase.data import save_recordings
 
         save_recordings(train, [record_sim(((1.0, 0.0, 0.0), (2.5, 2.0, 0.5)), name="t", split="train")],
                         set_name="train")

@@ -1,4 +1,4 @@
-"""``felis phase plot`` and `felis.learning.phase_plot`: a tiny phase model really trained on a short MuJoCo
+"""``felis phase plot`` and `felis.learning.phase.plot`: a tiny phase model really trained on a short MuJoCo
 trot and calibrated, plotted over a gait-data file and over a run log made by the ``felis`` command;
 one-line errors that write nothing. Real MuJoCo, real files, no mocks."""
 
@@ -12,11 +12,11 @@ from matplotlib.image import imread
 from test_cli import felis, ok, tree
 
 from felis.errors import ParameterError, PhaseError
-from felis.learning.gait_data import record_sim, save_recordings
-from felis.learning.pae import PaeConfig, load_pae_numpy, model_from_config, save_pae
-from felis.learning.phase_estimator import DEFAULT_WEIGHTS, calibrate
-from felis.learning.phase_plot import DPI, WIDTH_IN, plot_phase, resample
-from felis.learning.phase_train import PhaseTrainConfig, train_phase
+from felis.learning.phase.data import record_sim, save_recordings
+from felis.learning.phase.estimator import DEFAULT_WEIGHTS, calibrate
+from felis.learning.phase.pae import PaeConfig, load_pae_numpy, model_from_config, save_pae
+from felis.learning.phase.plot import DPI, WIDTH_IN, plot_phase, resample
+from felis.learning.phase.train import PhaseTrainConfig, train_phase
 
 TROT = ((1.0, 0.0, 0.0), (4.0, 2.0, 0.5), (2.0, 0.0, 0.0))
 CFG = PhaseTrainConfig(window=50, n_phases=3, hidden=8, kernel=13, epochs=4, fld_steps=4, threads=1)

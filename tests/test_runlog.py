@@ -1,4 +1,4 @@
-"""Run logs (felis.runlog) and their plot (felis.plotlog): round trip, crash safety, errors.
+"""Run logs (felis.logs.runlog) and their plot (felis.logs.plot): round trip, crash safety, errors.
 
 Real MCAP files in tmp_path; the crash test SIGKILLs a real child process mid-run.
 """
@@ -21,8 +21,8 @@ from mcap.writer import Writer
 
 from felis.errors import LogError
 from felis.hal import Command, Faults, Imu, State
-from felis.plotlog import plot_log, tilt_deg
-from felis.runlog import LogData, RunLog, log_info, read_log
+from felis.logs.plot import plot_log, tilt_deg
+from felis.logs.runlog import LogData, RunLog, log_info, read_log
 from felis.spec import load_spec
 
 RATE = 100.0
@@ -154,7 +154,7 @@ CHILD = textwrap.dedent("""
     import sys, time
     import numpy as np
     from felis.hal import Command, State
-    from felis.runlog import RunLog
+    from felis.logs.runlog import RunLog
     from felis.spec import load_spec
     spec = load_spec("cat")
     log = RunLog(sys.argv[1], spec)

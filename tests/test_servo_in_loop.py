@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from felis.controllers import PoseController
-from felis.drivers.robot import DynamixelRobot
+from felis.drivers.dynamixel.robot import DynamixelRobot
 from felis.drivers.virtual import spawn
 from felis.loop import run_loop
 from felis.servos import RAD_PER_TICK

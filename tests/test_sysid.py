@@ -184,7 +184,7 @@ def test_sysid_recovers_deliberately_changed_servo_parameters_through_the_virtua
     under ×5 (a fresh-clone CI run), with kp and damping within 4 % in the 14 where the test checked them. So
     a recording whose step RMS is not 5× lower is taken again, once, as an operator retakes a recording
     disturbed by load; kp and damping must hold in both."""
-    from felis.drivers.robot import DynamixelRobot
+    from felis.drivers.dynamixel.robot import DynamixelRobot
     from felis.drivers.virtual import spawn
 
     joints = ["fl_pitch", "tail_pitch"]

@@ -39,7 +39,7 @@ from dynamixel_sdk import (
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from felis.drivers import protocol as P
+from felis.drivers.dynamixel import protocol as P
 from felis.drivers.virtual import (
     Faults,
     Mount,

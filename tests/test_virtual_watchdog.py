@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 
-from felis.drivers import protocol as P
-from felis.drivers.bus import DynamixelBus
-from felis.drivers.controltable import control_table
-from felis.drivers.robot import TICK_ITEMS, DynamixelRobot
+from felis.drivers.dynamixel import protocol as P
+from felis.drivers.dynamixel.bus import DynamixelBus
+from felis.drivers.dynamixel.controltable import control_table
+from felis.drivers.dynamixel.robot import TICK_ITEMS, DynamixelRobot
 from felis.drivers.virtual import VirtualBus, VirtualServo, parse_faults
 from felis.errors import ParameterError
 from felis.hal import Command

@@ -70,7 +70,7 @@ def _reaction(text: str) -> str:
 
 
 def cmd_eval_balance(args) -> int:
-    from felis.learning.balance_eval import run_push_virtual, run_pushes, summarise
+    from felis.learning.balance.evaluate import run_push_virtual, run_pushes, summarise
     from felis.sim.pushes import pushes_from
 
     pushes = pushes_from(args.pushes, args.seed)
@@ -88,7 +88,7 @@ def cmd_eval_balance(args) -> int:
         react = reaction
         if reaction == "selector":
             from felis.controllers.reactions import FEATURES
-            from felis.learning.balance_select import load_selector
+            from felis.learning.balance.selector import load_selector
 
             react = load_selector(args.selector, feature_names=FEATURES)
         bar, step = _progress(len(pushes), "pushes (virtual bus, wall clock)", quiet)
@@ -131,8 +131,8 @@ def cmd_train_balance(args) -> int:
 
     from felis.controllers.reactions import FEATURES, REACTIONS
     from felis.files import check_target, prepare_parent, write_atomic
-    from felis.learning.balance_eval import demonstrate
-    from felis.learning.balance_select import (
+    from felis.learning.balance.evaluate import demonstrate
+    from felis.learning.balance.selector import (
         CaseBase,
         KnnSelector,
         SvmSelector,
@@ -255,7 +255,7 @@ def push_demo(run_dir: Path, video: bool = True) -> dict:
     """``felis demo`` part 4: the standing cat pushed sideways, once without a reaction and once with the
     shipped strategy selector; the margin of stability with the warning and the alarm, to PNG; the
     selector's run to MP4."""
-    from felis.learning.balance_eval import PushSim
+    from felis.learning.balance.evaluate import PushSim
     from felis.sim.pushes import check_push
 
     p = check_push(DEMO_PUSH, "demo push")
@@ -269,7 +269,7 @@ def push_demo(run_dir: Path, video: bool = True) -> dict:
 
             recorder = [VideoRecorder(sim.robot, run_dir / "push.mp4", fps=30.0, width=640, height=480)]
         from felis.controllers.reactions import FEATURES
-        from felis.learning.balance_select import load_selector
+        from felis.learning.balance.selector import load_selector
 
         try:
             runs["selector"] = sim.run(p, load_selector(feature_names=FEATURES), trace=True, monitors=recorder)

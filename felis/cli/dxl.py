@@ -54,7 +54,7 @@ def _id(text: str) -> int:
 
 
 def _baud(text: str) -> int:
-    from felis.drivers.bus import SDK_BAUDS
+    from felis.drivers.dynamixel.bus import SDK_BAUDS
 
     t = text.lower().replace("_", "")
     mult = 1
@@ -81,7 +81,7 @@ def open_bus(args, *, sim: bool = False, retries: int = 1, quiet_check: bool = T
 
     ``quiet_check``: listen 50 ms first and refuse a port that talks unprompted (the IMU's, given as the
     bus: `DynamixelBus.check_quiet`). The emergency stop skips it: it never waits before it sends."""
-    from felis.drivers.bus import DynamixelBus
+    from felis.drivers.dynamixel.bus import DynamixelBus
 
     port = args.port or os.environ.get("FELIS_PORT")
     if not port:
@@ -162,7 +162,7 @@ def _likely(p) -> bool:
 
 
 def cmd_scan(args) -> int:
-    from felis.drivers.bus import SDK_BAUDS
+    from felis.drivers.dynamixel.bus import SDK_BAUDS
 
     bauds = args.bauds or list(SDK_BAUDS)
     with open_bus(args) as bus:
@@ -284,7 +284,7 @@ def cmd_torque(args) -> int:
         if on:
             _goal_to_present(bus, ids)
         if ids is None:
-            from felis.drivers.protocol import BROADCAST_ID
+            from felis.drivers.dynamixel.protocol import BROADCAST_ID
 
             bus.write_raw(BROADCAST_ID, 64, b"\x00", "torque off (broadcast)")
             check = _known_ids(args, bus)
@@ -386,7 +386,7 @@ def cmd_set_id(args) -> int:
 
 
 def cmd_set_baud(args) -> int:
-    from felis.drivers.bus import baud_code
+    from felis.drivers.dynamixel.bus import baud_code
 
     with open_bus(args, retries=3) as bus:
         table = bus.table(args.id)
@@ -420,7 +420,7 @@ def _write_then_verify(bus, write, new_answers, old_answers, what: str) -> str:
     while the write took. So a write that got no reply is judged by pinging: at the new address it
     changed (returns a note saying the reply was lost), at the old one it did not (CommError), at
     neither the outcome is unknown (CommError)."""
-    from felis.drivers.bus import CorruptReplyError, NoReplyError
+    from felis.drivers.dynamixel.bus import CorruptReplyError, NoReplyError
 
     try:
         write()

@@ -182,7 +182,7 @@ def run_episode(ep: Episode) -> EpisodeResult:
                                       markers=getattr(controller, "markers", None))
                 monitors.insert(0, video)
             if ep.log is not None:
-                from felis.runlog import RunLog
+                from felis.logs.runlog import RunLog
 
                 meta = {"controller": ep.controller, "backend": "sim", **ep.meta}
                 if info is not None:
@@ -210,7 +210,7 @@ def run_episode(ep: Episode) -> EpisodeResult:
         if video is not None:
             files["video"] = str(video.close())
     if ep.plot is not None and ep.log is not None:
-        from felis.plotlog import plot_log
+        from felis.logs.plot import plot_log
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
     return EpisodeResult(report=report, landing=landing, drop=info, files=files, controller=ctl,
@@ -228,7 +228,7 @@ def run_hardware(ep: Episode) -> EpisodeResult:
     is held there in the air and falls when torque comes on (module doc)."""
     import contextlib
 
-    from felis.drivers.robot import DynamixelRobot
+    from felis.drivers.dynamixel.robot import DynamixelRobot
 
     spec = load_spec(ep.robot)
     controller = _controller(ep, spec)
@@ -272,7 +272,7 @@ def run_hardware(ep: Episode) -> EpisodeResult:
         log = None
         try:
             if ep.log is not None:
-                from felis.runlog import RunLog
+                from felis.logs.runlog import RunLog
 
                 meta = {"controller": ep.controller, "backend": "dxl", "port": ep.port, "baud": ep.baud, **ep.meta}
                 if info is not None:
@@ -295,7 +295,7 @@ def run_hardware(ep: Episode) -> EpisodeResult:
                        **({"final_tilt_deg": tilt} if tilt is not None else {})})
             files["log"] = str(ep.log)
     if ep.plot is not None and ep.log is not None:
-        from felis.plotlog import plot_log
+        from felis.logs.plot import plot_log
 
         files["plot"] = str(plot_log(ep.log, ep.plot))
     return EpisodeResult(report=report, landing=None, drop=info, files=files, warnings=ep.warnings, controller=ctl,
@@ -322,7 +322,7 @@ def _connect_checks(ep: Episode, spec, port: str):
     from felis.calib.calfile import calibration_path, load
     from felis.calib.operator import ConsoleOperator
     from felis.cli.calib import eeprom_check
-    from felis.drivers.bus import DynamixelBus
+    from felis.drivers.dynamixel.bus import DynamixelBus
 
     cal = None
     if ep.calibration is not None or ep.robot_id is not None:

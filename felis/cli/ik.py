@@ -20,7 +20,7 @@ DEFAULT_OUT = Path("runs/train-ik/ik.npz")
 
 
 def register(train_sub, eval_sub, parser_class, sub=None) -> None:
-    from felis.learning.ik_run import IkTrainConfig
+    from felis.learning.ik.run import IkTrainConfig
 
     d = IkTrainConfig()
     if sub is not None:
@@ -73,7 +73,7 @@ def register(train_sub, eval_sub, parser_class, sub=None) -> None:
 
 
 def cmd_ik_demos(args) -> int:
-    from felis.learning.ik_data import make_corpus, save_corpus, split, write_trajectory_csv
+    from felis.learning.ik.data import make_corpus, save_corpus, split, write_trajectory_csv
 
     if args.corpus < 3:
         raise ParameterError(f"--corpus must be at least 3 trajectories, got {args.corpus}")
@@ -110,7 +110,7 @@ def _check_out(path: Path) -> None:
 def cmd_train_ik(args) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from felis.learning.ik_run import IkTrainConfig, train_ik
+    from felis.learning.ik.run import IkTrainConfig, train_ik
 
     cfg = IkTrainConfig(corpus=args.corpus, corpus_seed=args.corpus_seed, seed=args.seed, kind=args.kind,
                         hidden=args.hidden, layers=args.layers, pe_frames=args.pe_frames, epochs=args.epochs,
@@ -151,19 +151,19 @@ def cmd_train_ik(args) -> int:
 
 
 def cmd_eval_ik(args) -> int:
-    from felis.learning.ik_eval import evaluate
-    from felis.learning.ik_solver import IkSolver
+    from felis.learning.ik.evaluate import evaluate
+    from felis.learning.ik.solver import IkSolver
 
     solver = IkSolver.load(args.weights)
     if args.trajectory == "builtin":
-        from felis.learning.ik_data import make_corpus, split
+        from felis.learning.ik.data import make_corpus, split
 
         corpus = solver.meta.get("corpus", {})
         n, seed = int(corpus.get("trajectories", 400)), int(corpus.get("seed", 1))
         trajs = split(make_corpus(n, seed), seed)[2]
     else:
         from felis.errors import TrajectoryError
-        from felis.learning.ik_data import demo_joints, read_trajectory_csv
+        from felis.learning.ik.data import demo_joints, read_trajectory_csv
 
         traj = read_trajectory_csv(args.trajectory)
         try:  # the demonstrator's joints, when the pitch rule can reach every point, for the jerk ratio

@@ -20,7 +20,7 @@ DEFAULT_TRAIN_OUT = Path("runs/train-landing/landing.npz")
 
 def register(train_sub, eval_sub, parser_class) -> None:
     """Add ``train landing`` and ``eval landing``."""
-    from felis.learning.landing_train import TrainConfig
+    from felis.learning.landing.train import TrainConfig
 
     d = TrainConfig()
     t = train_sub.add_parser("landing", help="evolve the landing nets (seed 000): the simple stage per training "
@@ -79,7 +79,7 @@ def register(train_sub, eval_sub, parser_class) -> None:
 
 def cmd_train_landing(args) -> int:
     from felis.files import check_target
-    from felis.learning.landing_train import TrainConfig, train_landing
+    from felis.learning.landing.train import TrainConfig, train_landing
 
     cfg = TrainConfig(seed=args.seed, population=args.population, generations_simple=args.generations_simple,
                       generations_complex=args.generations_complex, orientations=tuple(args.orientations or ()),
@@ -129,7 +129,7 @@ def cmd_train_landing(args) -> int:
 def cmd_eval_landing(args) -> int:
     from felis.cli.output import check_json_out, emit
     from felis.cli.output import progress as _progress
-    from felis.learning.landing_eval import check_policy, default_policy, run_drops, summarise
+    from felis.learning.landing.evaluate import check_policy, default_policy, run_drops, summarise
     from felis.sim.drops import drops_from
 
     drops = drops_from(args.drops, args.seed, args.height)

@@ -282,7 +282,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_log_info(args) -> int:
-    from felis.runlog import log_info
+    from felis.logs.runlog import log_info
 
     info = log_info(args.file)
     if args.json:
@@ -295,7 +295,7 @@ def cmd_log_info(args) -> int:
 
 
 def cmd_log_plot(args) -> int:
-    from felis.plotlog import plot_log
+    from felis.logs.plot import plot_log
 
     out = plot_log(args.file, args.out)
     print(f"plot: {out}")

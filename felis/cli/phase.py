@@ -1,5 +1,5 @@
-"""``felis phase``: gait data for phase learning (`felis.learning.gait_data`) and a look at what a phase
-model reads from a gait (`felis.learning.phase_plot`).
+"""``felis phase``: gait data for phase learning (`felis.learning.phase.data`) and a look at what a phase
+model reads from a gait (`felis.learning.phase.plot`).
 
 ::
 
@@ -27,10 +27,10 @@ prints the written path.
     felis eval phase [--weights W.npz] [--data GAIT.npz] [--pushes random:N|FILE|none] [--json] [--out R.json]
 
 train the PAE with FLD on the train recordings (the held-out ones pick the best epoch), calibrate the
-phase estimator, and report on the held-out recordings (`felis.learning.phase_run`); evaluate a phase
+phase estimator, and report on the held-out recordings (`felis.learning.phase.run`); evaluate a phase
 model: the held-out phase figures, reconstruction and prediction against the baselines, and the balance
 monitor's false alarms with its gait gate fed by the clock, by the estimator, and without a gate, on the
-same pushes (`felis.learning.phase_eval`).
+same pushes (`felis.learning.phase.evaluate`).
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ from felis.errors import ParameterError
 
 def cmd_phase_record(args) -> int:
     from felis.files import check_target
-    from felis.learning import gait_data
+    from felis.learning.phase import data as gait_data
 
     out = Path(args.out)
     if out.suffix.lower() != ".npz":
@@ -83,7 +83,7 @@ def cmd_phase_record(args) -> int:
 
 
 def cmd_phase_plot(args) -> int:
-    from felis.learning.phase_plot import plot_phase
+    from felis.learning.phase.plot import plot_phase
 
     out = plot_phase(args.source, args.out, weights=args.weights, recording=args.recording)
     print(f"plot: {out}")
@@ -131,7 +131,7 @@ DEFAULT_TRAIN_OUT = Path("runs/train-phase/phase.npz")
 
 def register_learning(train_sub, eval_sub, parser_class=None) -> None:
     """Add ``felis train phase`` and ``felis eval phase``."""
-    from felis.learning.phase_train import PhaseTrainConfig
+    from felis.learning.phase.train import PhaseTrainConfig
 
     d = PhaseTrainConfig()
     t = train_sub.add_parser("phase", help="train the periodic autoencoder with FLD (seed 003) on gait recordings; "
@@ -172,8 +172,8 @@ def cmd_train_phase(args) -> int:
     import sys
 
     from felis.files import check_target
-    from felis.learning.phase_run import results_path, train_phase_run
-    from felis.learning.phase_train import PhaseTrainConfig
+    from felis.learning.phase.run import results_path, train_phase_run
+    from felis.learning.phase.train import PhaseTrainConfig
 
     cfg = PhaseTrainConfig(epochs=args.epochs, window=args.window, n_phases=args.phases, hidden=args.hidden,
                            fld_steps=args.fld_steps, seed=args.seed)
@@ -213,11 +213,11 @@ def cmd_eval_phase(args) -> int:
 
     from felis.cli.output import check_json_out, emit
     from felis.cli.output import progress as _progress
-    from felis.learning.gait_data import load_recordings, record_set
-    from felis.learning.pae import load_pae, load_pae_numpy
-    from felis.learning.phase_estimator import DEFAULT_WEIGHTS
-    from felis.learning.phase_eval import gate_comparison, phase_metrics
-    from felis.learning.phase_train import evaluate_phase
+    from felis.learning.phase.data import load_recordings, record_set
+    from felis.learning.phase.estimator import DEFAULT_WEIGHTS
+    from felis.learning.phase.evaluate import gate_comparison, phase_metrics
+    from felis.learning.phase.pae import load_pae, load_pae_numpy
+    from felis.learning.phase.train import evaluate_phase
 
     weights = Path(args.weights or DEFAULT_WEIGHTS)
     if not weights.is_file():

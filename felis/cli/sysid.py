@@ -110,7 +110,7 @@ def _record(args, spec, joints, exc, bar):
 
         with MujocoRobot(spec, servo=servo, fixed_base=True) as robot:
             return record(robot, joints, rate_hz=rate, exc=exc, backend="sim", progress=progress)
-    from felis.drivers.robot import DynamixelRobot
+    from felis.drivers.dynamixel.robot import DynamixelRobot
 
     port = args.port or os.environ.get("FELIS_PORT")
     if not port:

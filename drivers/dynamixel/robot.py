@@ -48,8 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from felis.drivers.bus import CorruptReplyError, DynamixelBus, NoReplyError, ServoStatusError
-from felis.drivers.controltable import STATE_BLOCK, control_table
+from felis.drivers.dynamixel.bus import CorruptReplyError, DynamixelBus, NoReplyError, ServoStatusError
+from felis.drivers.dynamixel.controltable import STATE_BLOCK, control_table
 from felis.drivers.imu import apply_mounting
 from felis.errors import CalibrationError, CommError, DescriptionError
 from felis.hal import Command, Faults, Imu, RobotBase, State

@@ -5,7 +5,7 @@ device) and talks to the servos exactly as through a USB adapter (``shared/refer
 
 Pieces
 ------
-* `VirtualServo`: one servo: its control-table memory (`felis.drivers.controltable`), the rules of
+* `VirtualServo`: one servo: its control-table memory (`felis.drivers.dynamixel.controltable`), the rules of
   every instruction, and either standalone dynamics or a horn driven by a simulation.
 * `dispatch`: one instruction packet → the status packets the servos on the wire send back.
 * `VirtualBus`: servos by ID on a pty, a server thread that parses what the client writes, dispatches
@@ -168,8 +168,8 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from felis.drivers import protocol as P
-from felis.drivers.controltable import (
+from felis.drivers.dynamixel import protocol as P
+from felis.drivers.dynamixel.controltable import (
     BAUD_RATES,
     EEPROM_END,
     FAST_SYNC_READ_MIN_FIRMWARE,

@@ -1,4 +1,4 @@
-"""Training of the deep IK nets (`felis.learning.ik_net`): Adam, gradient clipping, exponential
+"""Training of the deep IK nets (`felis.learning.ik.net`): Adam, gradient clipping, exponential
 learning-rate decay, MSE on standardised targets, the best-validation weights kept, a checkpoint every
 epoch that a later run resumes bit-identically.
 
@@ -31,8 +31,8 @@ from typing import TypedDict
 import numpy as np
 
 from felis.errors import ParameterError, WeightsError
-from felis.learning.ik_net import NetSpec, check_arrays, model_from_spec, torch_to_arrays
-from felis.learning.torch_checkpoint import load_checkpoint, save_checkpoint
+from felis.learning.common.checkpoints import load_checkpoint, save_checkpoint
+from felis.learning.ik.net import NetSpec, check_arrays, model_from_spec, torch_to_arrays
 
 CHECKPOINT_ID = "felis-ik-checkpoint"
 CHECKPOINT_SCHEMA = 1
@@ -275,7 +275,7 @@ def _save_checkpoint(path: Path, run_id: dict, epoch: int, model, opt, gen, hist
 
 
 def _load_checkpoint(path: Path, run_id: dict, spec: NetSpec, model, opt, gen):
-    """Restore model, optimiser, generator from ``path`` (`felis.learning.torch_checkpoint`); returns (next
+    """Restore model, optimiser, generator from ``path`` (`felis.learning.common.checkpoints`); returns (next
     epoch, history, best state). WeightsError (one line) for a corrupt checkpoint or one from another run."""
     return load_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id,
                            (("spec", "net spec"), ("config", "training config"), ("data", "training data")),

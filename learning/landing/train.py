@@ -2,8 +2,8 @@
 
 Source: ``seeds/000_d27ba58563dbcb8e.txt`` §5 (gene units, crossover, elimination; "create a population,
 compute fitness, crossover and mutate, repeat"), §6.4 (eqs. 9–11), §6.5 (motion samples), §6.6 (the
-experiments). Nets, operators and ranking live in `felis.learning.landing_nets`, features and similarity
-in `felis.learning.motion_features`; this module is the loop around them.
+experiments). Nets, operators and ranking live in `felis.learning.landing.nets`, features and similarity
+in `felis.learning.landing.features`; this module is the loop around them.
 
 **Features.** A PCA (`Pca`, ``pca_dims`` components) is fitted on the logical features B of every motion
 sample (all orientations in the samples file, eq. 3–4); each training sample k then has SF_k (eq. 4) and
@@ -90,8 +90,16 @@ from typing import Any
 import numpy as np
 
 from felis.errors import FelisError, ParameterError
-from felis.learning.evaluator import Evaluator, make_evaluator
-from felis.learning.landing_nets import (
+from felis.learning.common.evaluator import Evaluator, make_evaluator
+from felis.learning.landing.features import (
+    Pca,
+    flatten_features,
+    logical_features,
+    motion_distance,
+    transition_distance,
+    transition_features,
+)
+from felis.learning.landing.nets import (
     DROP_HEIGHT_M,
     LANDING_HEIGHT_MM,
     MAX_HIDDEN,
@@ -113,19 +121,11 @@ from felis.learning.landing_nets import (
     rank_simple,
     save_policy,
 )
-from felis.learning.landing_samples import DT, STEPS, load_samples, rollout
-from felis.learning.motion_features import (
-    Pca,
-    flatten_features,
-    logical_features,
-    motion_distance,
-    transition_distance,
-    transition_features,
-)
+from felis.learning.landing.samples import DT, STEPS, load_samples, rollout
 from felis.sim.drops import WINDOW_S
 
 RATE_HZ = 100.0  # §6.4: steps of 1/100 s (`STEPS` = 200 of them)
-DEFAULT_SAMPLES = Path(__file__).parent / "weights" / "landing_samples.json"
+DEFAULT_SAMPLES = Path(__file__).parents[1] / "weights" / "landing_samples.json"
 DIVERGED = 1e9  # D and S of a rollout whose physics diverged
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "felis-landing-checkpoint"
@@ -375,7 +375,7 @@ _WORKER: tuple[Any, Task] | None = None
 def init_worker(task: Task) -> None:
     """Evaluator initializer: a `LandingSim` for ``task.robot`` and the task, kept for this process's jobs."""
     global _WORKER
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing.evaluate import LandingSim
 
     release_worker()
     _WORKER = (LandingSim(task.robot), task)
@@ -599,7 +599,7 @@ def _pack_unit(prefix: str, u: GeneUnit, arrays: dict[str, np.ndarray]) -> None:
 
 
 def _unpack_unit(prefix: str, kind: str, data: dict[str, np.ndarray]) -> GeneUnit:
-    from felis.learning.landing_nets import PolicyError
+    from felis.learning.landing.nets import PolicyError
 
     try:
         w1 = data[f"{prefix}/W1"]
@@ -777,7 +777,7 @@ def _write_outputs(cfg, task, idx, samples, state, fingerprint, out_path, run) -
     else:
         policy = ComplexBehaviour(tuple(state.frozen), state.compose[0])
     results = _results(cfg, task, idx, samples, state, fingerprint, run)
-    meta = {"trained_by": "felis.learning.landing_train", "seed": cfg.seed, "samples": fingerprint,
+    meta = {"trained_by": "felis.learning.landing.train", "seed": cfg.seed, "samples": fingerprint,
             "orientations": [list(o) for o in task.orientations], "heights_m": list(task.heights_m),
             "steps": cfg.steps, "use_similarity": cfg.use_similarity, "fitness": cfg.fitness,
             "one_net": cfg.one_net, "generations": [cfg.generations_simple, cfg.generations_complex,

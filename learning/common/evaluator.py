@@ -1,13 +1,13 @@
 """Evaluators: run a function over a list of jobs, locally in a process pool or on a Ray cluster.
 
-Training by evolution (`felis.learning.landing_train`) spends its time in rollouts, each a deterministic
+Training by evolution (`felis.learning.landing.train`) spends its time in rollouts, each a deterministic
 function of its job (an individual and an orientation). An `Evaluator` maps such a function over a list of
 jobs and returns the results **in job order**; which evaluator ran them never changes the numbers, since
 all randomness is drawn in the parent process and each worker only runs deterministic rollouts.
 
 - `ProcessPoolEvaluator`: a local process pool (default: every core), created on the first `map` and kept
   until `close`, so a per-worker object built by ``initializer(*initargs)`` (a compiled simulation, stored
-  in a module-level global of the job function's module, as `felis.learning.landing_eval` does) serves
+  in a module-level global of the job function's module, as `felis.learning.landing.evaluate` does) serves
   every generation. ``workers=1`` runs the jobs inline in this process (``initializer`` runs here once).
 - `RayEvaluator`: the same on Ray (``pip install felis[cluster]``): ``address="local"`` starts a local Ray
   with ``num_cpus``; any other address joins that cluster (``"auto"``, ``"ray://host:10001"``). Jobs go out

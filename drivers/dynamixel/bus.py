@@ -1,7 +1,7 @@
 """`DynamixelBus`: Protocol 2.0 on the unmodified ``dynamixel-sdk``, with its sharp edges filed off.
 
 One object per serial port. Items are addressed by name (``bus.read(3, "present_position")``) in SI
-units through the control tables of :mod:`felis.drivers.controltable`, or raw with ``raw=True``.
+units through the control tables of :mod:`felis.drivers.dynamixel.controltable`, or raw with ``raw=True``.
 
 What this layer adds to the SDK (``shared/reference/dynamixel.md``):
 
@@ -47,8 +47,8 @@ from dataclasses import dataclass, field
 import dynamixel_sdk as sdk
 import serial
 
-from felis.drivers import protocol as P
-from felis.drivers.controltable import (
+from felis.drivers.dynamixel import protocol as P
+from felis.drivers.dynamixel.controltable import (
     BAUD_RATES,
     EEPROM_END,
     FAST_SYNC_READ_MIN_FIRMWARE,

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.learning.ik_data import MP_IN, MP_OUT, PE_IN, PE_OUT, make_corpus, split, windows
+from felis.learning.ik.data import MP_IN, MP_OUT, PE_IN, PE_OUT, make_corpus, split, windows
 
 PE_VARIANTS: dict[int, tuple[int, ...]] = {1: (0,), 3: (-10, -5, 0), 5: tuple(PE_IN)}
 
@@ -65,7 +65,7 @@ def data(cfg: IkTrainConfig):
     corpus = make_corpus(cfg.corpus, cfg.corpus_seed)
     train, val, test = split(corpus, cfg.corpus_seed)
     if cfg.recorded:  # recorded runs of the arm (`felis run … --log`): demonstrations too, for training only
-        from felis.learning.ik_data import recorded_demos
+        from felis.learning.ik.data import recorded_demos
 
         train = train + [recorded_demos(Path(p)) for p in cfg.recorded]
     pe_in = PE_VARIANTS[cfg.pe_frames]
@@ -87,8 +87,8 @@ def train_ik(cfg: IkTrainConfig, out: Path, workdir: Path, *, resume: bool = Fal
 
     ``mp_from``: take the Motion Predictor from this weights file instead of training one (the
     ablations vary only the Posture Estimator)."""
-    from felis.learning.ik_net import NetSpec, save_weights, torch_to_arrays
-    from felis.learning.ik_train import TrainConfig, train_net
+    from felis.learning.ik.net import NetSpec, save_weights, torch_to_arrays
+    from felis.learning.ik.train import TrainConfig, train_net
 
     cfg.check()
     out, workdir = Path(out), Path(workdir)
@@ -100,7 +100,7 @@ def train_ik(cfg: IkTrainConfig, out: Path, workdir: Path, *, resume: bool = Fal
     nets, history = {}, {}
     for name, k, n_out in (("mp", len(MP_IN), 3 * len(MP_OUT)), ("pe", len(pe_in), 8 * len(PE_OUT))):
         if name == "mp" and mp_from is not None:  # ablations share one Motion Predictor
-            from felis.learning.ik_net import load_arrays
+            from felis.learning.ik.net import load_arrays
 
             arrs, old = load_arrays(mp_from, expect={"nets": ["mp"]})
             nets[name] = arrs["mp"]
@@ -124,8 +124,8 @@ def train_ik(cfg: IkTrainConfig, out: Path, workdir: Path, *, resume: bool = Fal
                "params": {n: int(s.param_count) for n, (s, _) in nets.items()}, "corpus": meta["corpus"],
                "history": history, "train_s": round(train_s, 1)}
     if evaluate_test:
-        from felis.learning.ik_eval import evaluate
-        from felis.learning.ik_solver import IkSolver
+        from felis.learning.ik.evaluate import evaluate
+        from felis.learning.ik.solver import IkSolver
 
         results["test"] = evaluate(IkSolver.load(out), test, baselines=baselines)
     stem = out.with_suffix("")

@@ -41,10 +41,10 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from felis.controllers import armkin
+from felis.controllers.armkin import REACH, SHOULDER
 from felis.errors import ParameterError, TrajectoryError
 from felis.files import check_readable, write_atomic
-from felis.learning import armkin
-from felis.learning.armkin import REACH, SHOULDER
 
 DT = 0.01  # s: demonstrations are sampled at 100 Hz
 
@@ -752,7 +752,7 @@ def recorded_demos(log_path: str | Path) -> Trajectory:
     TrajectoryError when the log is not of the arm (no joint1–4), was not recorded at 100 Hz, has
     fewer than 2 states, or has a non-finite angle; LogError when it cannot be read at all.
     """
-    from felis.runlog import read_log
+    from felis.logs.runlog import read_log
 
     data = read_log(log_path)
     missing = [j for j in ARM_JOINTS if j not in data.joints]

@@ -51,12 +51,12 @@ of the spine in both directions. ``budget`` rollouts in all (default `BUDGET`); 
 **Regenerate** (deterministic per seed; 6 min 50 s wall, 8 CPU-minutes, on 2 shared cores), one line
 (split here at the backslash)::
 
-    python -c "from felis.learning.landing_samples import make_samples; \
+    python -c "from felis.learning.landing.samples import make_samples; \
     make_samples('learning/weights/landing_samples.json')"
 
 It writes ``landing_samples.json`` (format, the command, the objective, per orientation the rule, its
 waypoints, score and outcome) and ``landing_samples.npz`` beside it (same stem: ``vectors`` (7, T, J, 3)
-from `felis.learning.motion_features.MotionRecorder`, ``heights_mm`` (7, T), ``up_z`` (7, T)).
+from `felis.learning.landing.features.MotionRecorder`, ``heights_mm`` (7, T), ``up_z`` (7, T)).
 
 **Results** (seed 0, budget 720 rollouts per orientation). start tilt: the up-axis' angle from vertical
 at release; ū_air and its ≈tilt (acos ū_air): how far the cat has turned when the waist passes 500 mm,
@@ -104,7 +104,7 @@ import numpy as np
 
 from felis.errors import ParameterError
 from felis.files import MAX_ARRAY_BYTES, check_readable, write_atomic
-from felis.learning.landing_nets import JOINTS, LANDING_HEIGHT_MM, MAX_SPEED
+from felis.learning.landing.nets import JOINTS, LANDING_HEIGHT_MM, MAX_SPEED
 
 TRAINING_ORIENTATIONS: tuple[tuple[float, float, float], ...] = (
     (180.0, 0.0, 0.0),
@@ -129,8 +129,8 @@ MIN_SPREAD = 0.1  # rad, floor of the spread so the search keeps exploring
 
 FORMAT = "felis-landing-samples"
 VERSION = 1
-DEFAULT_SAMPLES_PATH = Path(__file__).parent / "weights" / "landing_samples.json"
-COMMAND = ("python -c \"from felis.learning.landing_samples import make_samples; "
+DEFAULT_SAMPLES_PATH = Path(__file__).parents[1] / "weights" / "landing_samples.json"
+COMMAND = ("python -c \"from felis.learning.landing.samples import make_samples; "
            "make_samples('learning/weights/landing_samples.json')\"")
 OBJECTIVE = ("J = 2*mean(up_z upper, up_z lower at the first step with waist < 500 mm) + up_z upper at "
              "the end + (1 if landed else 0)")
@@ -277,12 +277,12 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
 
 def rollout(sim: Any, orientation: Sequence[float], policy_callable: Any, height_m: float = TRAIN_HEIGHT_M,
             steps: int = STEPS) -> Rollout:
-    """Drop the cat of ``sim`` (a `felis.learning.landing_eval.LandingSim`) from ``height_m`` in
+    """Drop the cat of ``sim`` (a `felis.learning.landing.evaluate.LandingSim`) from ``height_m`` in
     ``orientation`` (roll, pitch, yaw degrees) for ``steps`` ticks of `DT` under ``policy_callable``: a callable
     (it, t) → (12,) joint velocities (a `SpineRule`) or an object with ``velocities(it)`` (an evolved
     behaviour), or a ready `LandingController`. Deterministic for equal inputs."""
     from felis.controllers.landing import LandingController
-    from felis.learning.motion_features import MotionRecorder
+    from felis.learning.landing.features import MotionRecorder
     from felis.sim.drops import Drop
 
     o = _orientation(orientation)
@@ -381,7 +381,7 @@ class Sample:
 
 def _tune_one(args) -> dict:
     index, orientation, seed, budget = args
-    from felis.learning.landing_eval import LandingSim
+    from felis.learning.landing.evaluate import LandingSim
 
     sim = LandingSim()
     try:
@@ -474,7 +474,7 @@ def load_samples(path: str | Path) -> list[Sample]:
                              f"expected {STEPS} of {DT}")
     arrays = _read_arrays(path.with_name(str(doc.get("arrays") or path.with_suffix(".npz").name)))
     n = len(entries)
-    from felis.learning.motion_features import FEATURE_BODIES
+    from felis.learning.landing.features import FEATURE_BODIES
 
     shapes = {"vectors": (n, STEPS, len(FEATURE_BODIES), 3), "heights_mm": (n, STEPS), "up_z": (n, STEPS)}
     for k, shape in shapes.items():

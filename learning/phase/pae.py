@@ -57,7 +57,7 @@ the N-step trajectory prediction is the last frame of each predicted window (`pr
 `predict_frames` with ``frame=-1``), as in the paper. The decoder's last frames are its weakest (its
 convolutions see only the repeated edge frame beyond it), so `predict_frames` can also read an inner frame c of a window
 propagated (W−1−c)/rate further, which predicts the same instant while holding f, A, b constant
-longer; `felis.learning.phase_train.evaluate_phase` reports both. Which wins depends on the data: on a
+longer; `felis.learning.phase.train.evaluate_phase` reports both. Which wins depends on the data: on a
 tiny net (H = 8) the centre read was 7× better; on the default net trained on a gait with a drifting
 frequency the last frame was 1.7× better (FLD's loss trains the edge frames too).
 
@@ -477,7 +477,7 @@ def save_pae(path: str | Path, model, meta: Mapping[str, Any] | None = None) -> 
     keys "model", "schema", "config". The arrays are checked first, so a bad model is never written.
     """
     from felis.files import write_atomic
-    from felis.learning.ik_net import _jsonable
+    from felis.learning.ik.net import _jsonable
 
     path = Path(path)
     if path.suffix != ".npz":

@@ -32,7 +32,7 @@ controller's commanded ``frequency_hz``. At 100 Hz a touchdown time is known to 
 interval to ±2 % at 2 Hz; the medians keep the estimate within that (measured: ≤ 2.1 % over every
 steady segment of the default sets, most within 1 %).
 
-**Logs** (`from_log`): a felis run log (MCAP, `felis.runlog.read_log`); the states' t, q and foot contacts
+**Logs** (`from_log`): a felis run log (MCAP, `felis.logs.runlog.read_log`); the states' t, q and foot contacts
 (when logged; the virtual bus and the servos report none), resampled by linear interpolation (nearest
 sample for contacts) onto a uniform grid at the run's rate when the times are irregular (a wall-clock
 run). The clock fields are unknown: NaN phase, zero frequency and amplitude, stepping False.
@@ -240,7 +240,7 @@ def from_log(path: str | Path, rate_hz: float | None = None, name: str | None = 
     PhaseError (one line) for a missing file, a file that is not a felis run log, no state messages,
     non-increasing times, less than 2 s of states, or a NaN joint value (naming the joint and time).
     """
-    from felis.runlog import read_log
+    from felis.logs.runlog import read_log
 
     path = Path(path)
     try:
@@ -294,11 +294,11 @@ def _log_rate(data) -> float | None:
 def _logged_contacts(path: Path, n: int) -> np.ndarray | None:
     """(n, C) foot contacts of the log's /state messages, or None when any state lacks them.
 
-    `felis.runlog.LogData` does not carry contacts, so the states are read again here with the same
+    `felis.logs.runlog.LogData` does not carry contacts, so the states are read again here with the same
     tolerant record reader (a log cut off by a crash reads up to its last whole message)."""
     from mcap.records import Channel, Message
 
-    from felis.runlog import _records
+    from felis.logs.runlog import _records
 
     records, _ = _records(path)
     topics: dict[int, str] = {}

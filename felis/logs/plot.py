@@ -21,7 +21,7 @@ import numpy as np
 
 from felis.errors import LogError, ParameterError
 from felis.files import write_atomic
-from felis.runlog import LogData, read_log
+from felis.logs.runlog import LogData, read_log
 
 
 def tilt_deg(quat: np.ndarray) -> np.ndarray:

@@ -26,9 +26,9 @@ import time
 
 import numpy as np
 
-from felis.learning import armkin
-from felis.learning.ik_data import DT, Trajectory, path_velocity, posture_pitch
-from felis.learning.ik_solver import HISTORY, IkSolver
+from felis.controllers import armkin
+from felis.learning.ik.data import DT, Trajectory, path_velocity, posture_pitch
+from felis.learning.ik.solver import HISTORY, IkSolver
 
 JOINTS = armkin.JOINTS
 

@@ -584,7 +584,7 @@ def exact_accuracy(selector: _Selector, cases: CaseBase) -> float:
     return float(np.mean(selector.predict_index(cases.features) == cases.labels()))
 
 
-DEFAULT_SELECTOR = Path(__file__).parent / "weights" / "balance_selector.npz"
+DEFAULT_SELECTOR = Path(__file__).parents[1] / "weights" / "balance_selector.npz"
 
 
 def load_selector(path: str | Path | None = None, feature_names: Any = None) -> KnnSelector:

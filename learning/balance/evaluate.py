@@ -147,7 +147,7 @@ def run_push_virtual(p: Push, reaction: str | Callable = "none", *, rate_hz: flo
     virtual servos backed by MuJoCo, the IMU through its UART-RVC emulator, on the wall clock. The
     monitor has no simulator truth here: it estimates the CoM from the servos' angles and the IMU
     (`felis.bodymodel`), as on the real cat. The push and the fall detector act on the bus's model."""
-    from felis.drivers.robot import DynamixelRobot
+    from felis.drivers.dynamixel.robot import DynamixelRobot
     from felis.drivers.virtual import VirtualBus
     from felis.sim.bodymodel import load_body_model
 
@@ -180,7 +180,7 @@ _SELECTOR = None
 
 
 def _load_selector(path: str | None):
-    from felis.learning.balance_select import load_selector
+    from felis.learning.balance.selector import load_selector
 
     return load_selector(path, feature_names=FEATURES)
 

@@ -1,13 +1,13 @@
 """`felis train phase`: gait recordings → PAE with FLD → calibrated weights, held-out figures.
 
 One run: the gait data (a file from ``felis phase record``, or the default schedules recorded now in
-MuJoCo, `felis.learning.gait_data`); the ``train`` recordings train the PAE with FLD
-(`felis.learning.phase_train.train_phase`, a checkpoint per epoch in the work folder), the ``heldout``
-ones pick the best epoch and are the evaluation set; `felis.learning.phase_estimator.calibrate` finds the
+MuJoCo, `felis.learning.phase.data`); the ``train`` recordings train the PAE with FLD
+(`felis.learning.phase.train.train_phase`, a checkpoint per epoch in the work folder), the ``heldout``
+ones pick the best epoch and are the evaluation set; `felis.learning.phase.estimator.calibrate` finds the
 gait channel and the stepping threshold on the training recordings, stored in the weights' metadata
 (``phase_estimator``). Then, on the held-out recordings: the phase figures
-(`felis.learning.phase_eval.phase_metrics`) and the reconstruction and N-step prediction errors of FLD
-against the constant-velocity and last-cycle baselines (`felis.learning.phase_train.evaluate_phase`).
+(`felis.learning.phase.evaluate.phase_metrics`) and the reconstruction and N-step prediction errors of FLD
+against the constant-velocity and last-cycle baselines (`felis.learning.phase.train.evaluate_phase`).
 Writes the weights (``.npz``) and ``<name>.results.json`` beside them.
 """
 
@@ -21,11 +21,11 @@ from pathlib import Path
 
 from felis.errors import PhaseError
 from felis.files import write_atomic
-from felis.learning.gait_data import load_recordings, record_set
-from felis.learning.pae import load_pae_numpy, save_pae
-from felis.learning.phase_estimator import calibrate
-from felis.learning.phase_eval import phase_metrics
-from felis.learning.phase_train import PhaseTrainConfig, evaluate_phase, train_phase
+from felis.learning.phase.data import load_recordings, record_set
+from felis.learning.phase.estimator import calibrate
+from felis.learning.phase.evaluate import phase_metrics
+from felis.learning.phase.pae import load_pae_numpy, save_pae
+from felis.learning.phase.train import PhaseTrainConfig, evaluate_phase, train_phase
 
 
 def gait_data(path: Path | None, scale: float = 1.0):

@@ -1,4 +1,4 @@
-"""Training and evaluation of the periodic autoencoder with Fourier latent dynamics (`felis.learning.pae`)
+"""Training and evaluation of the periodic autoencoder with Fourier latent dynamics (`felis.learning.phase.pae`)
 on joint trajectories: windows and sequences from trajectories, Adam, a checkpoint every epoch that a
 later run resumes bit-identically, the best-validation weights kept, and an N-step prediction benchmark.
 
@@ -10,20 +10,20 @@ arrays, not a recording class. A training sample is a *sequence*: N+1 windows of
 starting i·``fld_step`` frames after window 0 (`make_sequences`); sequences start every ``stride`` frames.
 They are stored as segments of W + N·fld_step frames and cut into windows per batch.
 
-Loss per batch (normalised units; L_i as in `felis.learning.pae.fld_terms`, Δt = fld_step / rate)::
+Loss per batch (normalised units; L_i as in `felis.learning.phase.pae.fld_terms`, Δt = fld_step / rate)::
 
     L = L_0 + w_FLD · Σ_{i=0}^{N} α^i L_i
 
 L_0 is the reconstruction MSE of window 0 (the PAE loss); the sum is the FLD loss, which holds L_0 as
 its first term, as in the paper. Adam at ``lr · lr_decay^epoch``, gradients clipped to ``grad_clip``.
 
-Determinism (as `felis.learning.ik_train`): weights from ``torch.manual_seed(seed)`` inside
+Determinism (as `felis.learning.ik.train`): weights from ``torch.manual_seed(seed)`` inside
 ``fork_rng``, batches from a seeded ``torch.Generator``, ``threads`` intra-op threads and deterministic
 algorithms, restored afterwards. Same data, config and thread count → bit-identical weights; a run
 resumed from its checkpoint ends with the same weights as an uninterrupted one.
 
 Evaluation (`evaluate_phase`). Reconstruction MSE in rad² and the error of predicting the joint angles
-1 … N frames after a window's last frame ("now"), by FLD read two ways (`felis.learning.pae.predict_frames`):
+1 … N frames after a window's last frame ("now"), by FLD read two ways (`felis.learning.phase.pae.predict_frames`):
 the last frame of each predicted window (the paper's reading, ``fld``) and the centre frame of a window
 propagated W/2 frames further (``fld_centre``; the decoder is most accurate away from the window's
 zero-padded ends), and by two baselines: constant velocity, q̂(now + i) = q(now) + i (q(now) − q(now − 1));
@@ -44,8 +44,9 @@ from typing import Any, TypedDict
 import numpy as np
 
 from felis.errors import ParameterError, PhaseError
-from felis.learning.ik_train import _fingerprint, _stats, _TorchSettings
-from felis.learning.pae import (
+from felis.learning.common.checkpoints import load_checkpoint, save_checkpoint
+from felis.learning.ik.train import _fingerprint, _stats, _TorchSettings
+from felis.learning.phase.pae import (
     PaeConfig,
     check_arrays,
     fld_terms,
@@ -53,7 +54,6 @@ from felis.learning.pae import (
     predict_frames,
     torch_to_arrays,
 )
-from felis.learning.torch_checkpoint import load_checkpoint, save_checkpoint
 
 CHECKPOINT_ID = "felis-pae-checkpoint"
 CHECKPOINT_SCHEMA = 1
@@ -67,7 +67,7 @@ Progress = Callable[[int, int, float, float], None]
 @dataclass(frozen=True)
 class PhaseTrainConfig:
     """Training settings. Model: ``window`` W frames at ``rate_hz``, ``n_phases`` M, ``hidden``, ``kernel``
-    (`felis.learning.pae.PaeConfig`). Data: a sequence starts every ``stride`` frames; it holds
+    (`felis.learning.phase.pae.PaeConfig`). Data: a sequence starts every ``stride`` frames; it holds
     ``fld_steps`` N + 1 windows ``fld_step`` frames apart (Δt = fld_step / rate_hz). Loss: FLD decay
     ``alpha`` α, weight ``fld_weight`` (0: the plain PAE). Optimiser: ``epochs`` passes in batches of
     ``batch`` sequences, Adam at ``lr`` times ``lr_decay`` per epoch, gradient norm clipped to
@@ -325,7 +325,7 @@ def _save_checkpoint(path: Path, run_id: dict, epoch: int, model, opt, gen, hist
 
 
 def _load_checkpoint(path: Path, run_id: dict, pcfg: PaeConfig, model, opt, gen):
-    """Restore model, optimiser and generator from ``path`` (`felis.learning.torch_checkpoint`); returns
+    """Restore model, optimiser and generator from ``path`` (`felis.learning.common.checkpoints`); returns
     (next epoch, history, best state). PhaseError (one line) for a corrupt checkpoint or one from another run."""
     return load_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id,
                            (("config", "training config"), ("pae", "model config or joints"),

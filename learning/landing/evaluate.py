@@ -38,7 +38,7 @@ NAMED = (*POLICIES, "rules", "shipped")
 
 
 def shipped_policy() -> Path:
-    from felis.learning.landing_nets import DEFAULT_POLICY
+    from felis.learning.landing.nets import DEFAULT_POLICY
 
     return DEFAULT_POLICY
 
@@ -53,7 +53,7 @@ def check_policy(policy: str) -> str:
     the nearest training orientation), ``shipped`` or a policy file; else a one-line ParameterError."""
     if policy in POLICIES or policy == "rules":
         return policy
-    from felis.learning.landing_nets import PolicyError, load_policy
+    from felis.learning.landing.nets import PolicyError, load_policy
 
     path = shipped_policy() if policy == "shipped" else Path(policy)
     if not path.exists():
@@ -77,11 +77,11 @@ def make_policy(policy: str, drop: Drop | None = None) -> Controller:
     from felis.controllers.landing import LandingController
 
     if policy == "rules":
-        from felis.learning.landing_samples import nearest_rule
+        from felis.learning.landing.samples import nearest_rule
 
         rule = nearest_rule((drop.roll_deg, drop.pitch_deg, drop.yaw_deg) if drop else (180.0, 0.0, 0.0))
         return LandingController(rule, drop_height=drop.height_m if drop else None)
-    from felis.learning.landing_nets import load_policy
+    from felis.learning.landing.nets import load_policy
 
     behaviour, _ = load_policy(shipped_policy() if policy == "shipped" else policy)
     return LandingController(behaviour, drop_height=drop.height_m if drop else None)

@@ -4,7 +4,7 @@
 simulated ones). A *steady segment* is a run of frames at one commanded frequency and lift; it is judged
 from one window after its start (the window then holds that gait only) to its end. On each:
 
-* true step frequency f* from foot-contact timing (`felis.learning.gait_data.contact_frequency`);
+* true step frequency f* from foot-contact timing (`felis.learning.phase.data.contact_frequency`);
 * phase rate: the slope of the gait channel's unwrapped phase (least squares, cycles/s) over the
   segment; its ratio r = rate/f* is compared with the nearest integer multiple n = max(1, round(r))
   (a channel may turn at twice the step frequency: both diagonals' steps look alike): error |r/n − 1|;
@@ -19,7 +19,7 @@ from one window after its start (the window then holds that gait only) to its en
 
 **Gate** (`gate_comparison`): pushes on the simulated cat with three balance monitors watching the same
 run: gated by the stepping controller's own clock (the reference), by the online phase estimator
-(`felis.learning.phase_estimator.PhaseEstimator`), and without a gate. No reaction: the monitors only
+(`felis.learning.phase.estimator.PhaseEstimator`), and without a gate. No reaction: the monitors only
 watch, so all three see the same physics. Recall and false alarms per monitor, per phase of the push.
 """
 
@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from felis.learning.gait_data import GaitRecording, contact_frequency
-from felis.learning.pae import PaeNumpy
-from felis.learning.phase_estimator import PhaseEstimator, _window_all, phase_track
+from felis.learning.phase.data import GaitRecording, contact_frequency
+from felis.learning.phase.estimator import PhaseEstimator, _window_all, phase_track
+from felis.learning.phase.pae import PaeNumpy
 
 MIN_SEGMENT_S = 2.0  # s of a steady segment after its first window, to be judged
 GATES = ("clock", "phase", "none")
@@ -135,7 +135,7 @@ _WEIGHTS: str | None = None
 
 def _init(weights: str) -> None:
     global _SIM, _WEIGHTS
-    from felis.learning.balance_eval import PushSim
+    from felis.learning.balance.evaluate import PushSim
 
     _SIM, _WEIGHTS = PushSim(), weights
 

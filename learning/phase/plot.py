@@ -1,8 +1,8 @@
-"""A one-page PNG of what a trained phase model (`felis.learning.pae`, seed 003) reads from a gait: a run
-log (``.mcap``) or one recording of a gait-data file (``.npz``, `felis.learning.gait_data`).
+"""A one-page PNG of what a trained phase model (`felis.learning.phase.pae`, seed 003) reads from a gait: a run
+log (``.mcap``) or one recording of a gait-data file (``.npz``, `felis.learning.phase.data`).
 
 The recording's joint trajectory, resampled onto the model's rate by linear interpolation when it was
-recorded at another, goes through `felis.learning.phase_estimator.phase_track`: per frame, from the
+recorded at another, goes through `felis.learning.phase.estimator.phase_track`: per frame, from the
 window of the last W frames, each latent channel c's phase φ_c *now*, frequency f_c and amplitude A_c
 (nothing for the first W − 1 frames). Panels, sharing the time axis:
 
@@ -20,7 +20,7 @@ coloured by time. A steady gait draws a circle of radius A, standing collapses o
 amplitude moves between rings. Weights without a calibration still plot: the gait channel is then the one
 with the largest median amplitude over the recording, and no threshold is drawn.
 
-Drawn with matplotlib's object API as `felis.plotlog` does (``Figure`` + ``FigureCanvasAgg``, no pyplot),
+Drawn with matplotlib's object API as `felis.logs.plot` does (``Figure`` + ``FigureCanvasAgg``, no pyplot),
 written atomically.
 """
 
@@ -34,9 +34,9 @@ import numpy as np
 
 from felis.errors import ParameterError, PhaseError
 from felis.files import check_target, write_atomic
-from felis.learning.gait_data import GaitRecording, from_log, load_recordings
-from felis.learning.pae import PaeNumpy, load_pae_numpy
-from felis.learning.phase_estimator import DEFAULT_WEIGHTS, phase_track
+from felis.learning.phase.data import GaitRecording, from_log, load_recordings
+from felis.learning.phase.estimator import DEFAULT_WEIGHTS, phase_track
+from felis.learning.phase.pae import PaeNumpy, load_pae_numpy
 
 DPI = 110
 WIDTH_IN = 12.0

@@ -1,4 +1,4 @@
-"""Training checkpoints for the torch trainers (`felis.learning.ik_train`, `felis.learning.phase_train`):
+"""Training checkpoints for the torch trainers (`felis.learning.ik.train`, `felis.learning.phase.train`):
 one ``.npz`` per run, written atomically after every epoch, that a resumed run continues from
 bit-identically.
 

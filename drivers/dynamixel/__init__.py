@@ -1,0 +1,1 @@
+"""`felis.drivers.dynamixel`."""

@@ -1,0 +1,1 @@
+"""`felis.learning.common`."""
