@@ -91,7 +91,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import serial
 
-from felis.errors import CommError
+from felis.errors import CommError, ImuProtocolError, ImuSilentError
 from felis.hal import Imu
 
 HEADER = b"\xaa\xaa"
@@ -418,12 +418,6 @@ def _open_error(port: str, e: Exception) -> CommError:
     return CommError(f"IMU port {port}: {why} ({detail})")
 
 
-class ImuSilentError(CommError):
-    """The IMU's port delivered no byte at all in the time allowed."""
-
-
-class ImuProtocolError(CommError):
-    """The IMU's port delivers bytes, but no BNO08x UART-RVC frame among them."""
 
 
 DYNAMIXEL_HEADER = b"\xff\xff\xfd\x00"

@@ -45,10 +45,6 @@ class CommError(FelisError):
     fatal: bool = False
 
 
-class SafetyTrip(FelisError):
-    """The safety layer stopped the run (watchdog: read failures or overruns past their limits)."""
-
-
 class SimulationError(FelisError):
     """The physics became invalid (NaN or diverging state); the episode cannot continue."""
 
@@ -84,3 +80,75 @@ class WeightsError(FelisError):
 class PhaseError(FelisError):
     """Gait data for phase learning is unusable: a run log that is missing, too short or holds NaN joint
     values, a recording that tipped the cat over, or a corrupt or mismatched gait-data file (``.npz``)."""
+
+
+class UsageError(FelisError):
+    """A command line that argparse rejects (an unknown option, a missing sub-command); exit code 2."""
+
+
+# --- the serial bus and its devices (felis.drivers) ----------------------------------------------------
+
+
+class PortError(CommError):
+    """The serial port cannot be opened, lacks permission, or vanished."""
+
+    fatal = True
+
+
+class NoReplyError(CommError):
+    """A servo did not answer (missing, wrong baud, or the reply was lost)."""
+
+
+class CorruptReplyError(CommError):
+    """A reply arrived but failed its CRC or was cut short."""
+
+
+class ServoStatusError(FelisError):
+    """A servo answered with an error in its status byte (e.g. Access Error).
+
+    ``detail`` is the decoded status byte (`felis.drivers.dynamixel.protocol.describe_status_error`)."""
+
+    def __init__(self, dxl_id: int, error: int, what: str, detail: str | None = None):
+        self.id, self.error = dxl_id, error
+        super().__init__(f"servo {dxl_id}: {what}: {detail if detail is not None else f'error byte 0x{error:02x}'}")
+
+
+class ImuSilentError(CommError):
+    """The IMU's port delivered no byte at all in the time allowed."""
+
+
+class ImuProtocolError(CommError):
+    """The IMU's port delivers bytes, but no BNO08x UART-RVC frame among them."""
+
+
+# --- simulation (felis.sim) -----------------------------------------------------------------------------
+
+
+class ModelMismatch(FelisError):
+    """The MJCF model does not match the robot description."""
+
+
+class RenderError(FelisError):
+    """Offscreen rendering is unavailable (no OpenGL context)."""
+
+
+# --- learning (felis.learning) --------------------------------------------------------------------------
+
+
+class PolicyError(FelisError):
+    """A landing policy (gene unit, behaviour or ``.npz`` policy file) is inconsistent, missing, corrupt,
+    of an unknown format or for another robot. Nothing is driven with it."""
+
+
+class CheckpointError(FelisError):
+    """A training checkpoint is corrupt, of another format, or was written by a run with other settings or
+    other motion samples; nothing is resumed from it."""
+
+
+class SelectorError(FelisError):
+    """A case base, selector file, query or selector parameter is unusable: wrong shape, non-finite
+    values, a missing, corrupt or foreign file, feature names other than the caller's."""
+
+
+class EvaluatorError(FelisError):
+    """A worker process died mid-map (out of memory, a crash in native code); its results are lost."""

@@ -19,16 +19,13 @@ import imageio.v2 as imageio
 import mujoco
 import numpy as np
 
-from felis.errors import FelisError, ParameterError
+from felis.errors import ParameterError, RenderError
 from felis.files import prepare_parent
 from felis.hal import Command, State
 from felis.sim.robot import MujocoRobot
 
 FORMATS = (".mp4", ".gif", ".png")
 
-
-class RenderError(FelisError):
-    """Offscreen rendering is unavailable (no OpenGL context)."""
 
 
 def check_video_path(path: str | Path) -> Path:

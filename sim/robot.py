@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 
 from felis.bodymodel import low_matrix
-from felis.errors import FelisError, SimulationError
+from felis.errors import FelisError, ModelMismatch, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State, Truth
 from felis.servos import servo_model
 from felis.sim.servo import ServoParams, quantization_steps, servo_params
@@ -71,9 +71,6 @@ def collision_points(m: mujoco.MjModel, bodies) -> tuple[np.ndarray, np.ndarray,
         return np.zeros(0, dtype=int), np.zeros((0, 3)), np.zeros(0)
     return np.array(out_b, dtype=int), np.concatenate(out_p), np.concatenate(out_r)
 
-
-class ModelMismatch(FelisError):
-    """The MJCF model does not match the robot description."""
 
 
 def model_path(spec: RobotSpec) -> Path:

@@ -58,33 +58,22 @@ from felis.drivers.dynamixel.controltable import (
     decode_hardware_error,
     model_name,
 )
-from felis.errors import CommError, FelisError, ParameterError
+from felis.errors import (
+    CommError,
+    CorruptReplyError,
+    NoReplyError,
+    ParameterError,
+    PortError,
+    ServoStatusError,
+)
 
 SDK_BAUDS = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)  # both SDK and servo support
 _TORQUE_ENABLE = 64
 _HW_ERROR = 70
 
 
-class PortError(CommError):
-    """The serial port cannot be opened, lacks permission, or vanished."""
-
-    fatal = True
 
 
-class NoReplyError(CommError):
-    """A servo did not answer (missing, wrong baud, or the reply was lost)."""
-
-
-class CorruptReplyError(CommError):
-    """A reply arrived but failed its CRC or was cut short."""
-
-
-class ServoStatusError(FelisError):
-    """A servo answered with an error in its status byte (e.g. Access Error)."""
-
-    def __init__(self, dxl_id: int, error: int, what: str):
-        self.id, self.error = dxl_id, error
-        super().__init__(f"servo {dxl_id}: {what}: {P.describe_status_error(error)}")
 
 
 @dataclass
@@ -581,7 +570,8 @@ class DynamixelBus:
         err, data = self._status_of(dxl_id, f"read {length} B at {addr}", P.READ,
                                     [addr & 0xFF, addr >> 8, length & 0xFF, length >> 8], length)
         if err & 0x7F:
-            raise ServoStatusError(dxl_id, err, f"read of {length} bytes at address {addr}")
+            raise ServoStatusError(dxl_id, err, f"read of {length} bytes at address {addr}",
+                                   P.describe_status_error(err))
         return bytes(data[:length])
 
     def read(self, dxl_id: int, name: str, raw: bool = False):
@@ -602,7 +592,7 @@ class DynamixelBus:
         _check_id(dxl_id)
         err, _ = self._status_of(dxl_id, what, P.WRITE, params, 0)
         if err & 0x7F:
-            raise ServoStatusError(dxl_id, err, what)
+            raise ServoStatusError(dxl_id, err, what, P.describe_status_error(err))
 
     def write(self, dxl_id: int, name: str, value, raw: bool = False, *, dry_run: bool = False) -> int:
         """Write an item by name (SI or raw). Checks writability and range first; EEPROM items only
@@ -646,7 +636,7 @@ class DynamixelBus:
         _check_id(dxl_id)
         err, _ = self._status_of(dxl_id, "reboot", P.REBOOT, [], 0)
         if err & 0x7F:
-            raise ServoStatusError(dxl_id, err, "reboot")
+            raise ServoStatusError(dxl_id, err, "reboot", P.describe_status_error(err))
 
     def hardware_error(self, dxl_id: int) -> tuple[int, list[str]]:
         """Hardware Error Status: (bits, names)."""

@@ -19,14 +19,11 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-from felis.errors import FelisError, ParameterError
+from felis.errors import FelisError, ParameterError, UsageError
 from felis.shutdown import EXIT_INTERRUPTED, signals
 
 EXIT_ERROR, EXIT_USAGE = 1, 2
 
-
-class UsageError(Exception):
-    pass
 
 
 class _Parser(argparse.ArgumentParser):

@@ -80,7 +80,7 @@ from typing import Any
 
 import numpy as np
 
-from felis.errors import FelisError
+from felis.errors import SelectorError
 from felis.files import one_line as _one_line
 from felis.files import read_npz
 
@@ -91,10 +91,6 @@ VERSION = 1
 META_KEY = "__meta__"
 _HIT = 1e-12  # distance (standardised units) below which a query counts as on a stored case
 
-
-class SelectorError(FelisError):
-    """A case base, selector file, query or selector parameter is unusable: wrong shape, non-finite
-    values, a missing, corrupt or foreign file, feature names other than the caller's."""
 
 
 # ------------------------------------------------------------------------------------------- cases

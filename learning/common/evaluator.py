@@ -35,13 +35,10 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol, runtime_checkable
 
-from felis.errors import FelisError, ParameterError
+from felis.errors import EvaluatorError, ParameterError
 
 BATCHES_PER_WORKER = 4  # default chunking: about this many batches per worker in one map call
 
-
-class EvaluatorError(FelisError):
-    """A worker process died mid-map (out of memory, a crash in native code); its results are lost."""
 
 
 @runtime_checkable

@@ -44,16 +44,10 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from felis.errors import FelisError, ParameterError
+from felis.errors import ParameterError, PolicyError
 from felis.files import one_line as _one_line
 from felis.files import read_npz
 from felis.servos import SERVOS
-
-
-class PolicyError(FelisError):
-    """A landing policy (gene unit, behaviour or ``.npz`` policy file) is inconsistent, missing, corrupt,
-    of an unknown format or for another robot. Nothing is driven with it."""
-
 
 JOINTS = ("spine_pitch", "spine_yaw", "tail_pitch", "tail_yaw",
           "fl_pitch", "fl_roll", "fr_pitch", "fr_roll",

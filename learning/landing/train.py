@@ -89,7 +89,7 @@ from typing import Any
 
 import numpy as np
 
-from felis.errors import FelisError, ParameterError
+from felis.errors import CheckpointError, ParameterError
 from felis.learning.common.evaluator import Evaluator, make_evaluator
 from felis.learning.landing.features import (
     Pca,
@@ -138,10 +138,6 @@ GENERAL_STEPS = 150  # 1.5 s: a 3 m fall (0.78 s) and the 0.5 s the landed rule 
 
 Progress = Callable[[str, int, int, dict], None]
 
-
-class CheckpointError(FelisError):
-    """A training checkpoint is corrupt, of another format, or was written by a run with other settings or
-    other motion samples; nothing is resumed from it."""
 
 
 # ------------------------------------------------------------------------------------------- config
