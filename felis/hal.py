@@ -17,7 +17,7 @@ Torque goes off on ``disarm()``, on ``close()`` and on any exception escaping a 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -41,9 +41,11 @@ class Imu:
 
 @dataclass(frozen=True)
 class Faults:
-    """Per-joint hardware error bits (Dynamixel Hardware Error Status) and communication errors."""
+    """Per-joint hardware error bits (Dynamixel Hardware Error Status) and communication errors.
 
-    hardware: np.ndarray  # int per joint, 0 = healthy
+    ``Faults()`` is "no faults" for a robot of any size (``hardware`` empty, the masks None)."""
+
+    hardware: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))  # int per joint, 0 = healthy
     comm_errors: int = 0  # failed transactions since connect
     stale: np.ndarray | None = None  # bool per joint: value not refreshed this tick
     torque_off: np.ndarray | None = None  # bool per joint: torque read off while the host holds it on
@@ -85,8 +87,9 @@ class State:
     t: time (s) since connect; q: joint positions (rad; m for prismatic); dq: velocities;
     effort: joint torques (N·m) estimated from servo current, None where not reported;
     imu / contacts (bool per foot in `RobotSpec.sensors.contacts` order) / height (m, waist above
-    ground): None when the robot has no such sensor or the backend cannot know it; truth: exact
-    CoM and feet from a simulator (`Truth`), None on hardware.
+    ground): None when the robot has no such sensor or the backend cannot know it; faults: per-joint
+    hardware and communication faults (`Faults`; a backend that reports none gets ``Faults()``, no
+    faults); truth: exact CoM and feet from a simulator (`Truth`), None on hardware.
     """
 
     t: float
@@ -96,7 +99,7 @@ class State:
     imu: Imu | None = None
     contacts: np.ndarray | None = None
     height: float | None = None
-    faults: Faults | None = None
+    faults: Faults = field(default_factory=Faults)
     truth: Truth | None = None
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from felis.controllers import PoseController
 from felis.errors import CommError, LifecycleError, ParameterError
-from felis.hal import Command, Lifecycle
+from felis.hal import Command, Lifecycle, State
 from felis.loop import run_loop
 from felis.safety import SafetyConfig, SafetyLayer
 from felis.sim import MujocoRobot
@@ -245,3 +245,27 @@ def test_logged_events_match_counters_through_read_failures(tmp_path):
     kinds = [e["kind"] for e in data.events]
     assert kinds.count("limit_clamp") == report.safety["limit_clamps"] == 18  # 20 ticks, 2 without a command
     assert kinds.count("read_failed") == report.read_failures == 2
+
+
+class ThirdPartyCat(MujocoRobot):
+    """The MuJoCo cat as a robot of another vendor would report it: a `State` without ``faults`` (the
+    default, no faults) or with ``faults=None``, and the loop's log and servo-stop checks must cope."""
+
+    def __init__(self, explicit_none: bool):
+        super().__init__(CAT)
+        self.explicit_none = explicit_none
+
+    def _read(self):
+        s = super()._read()
+        fields = dict(t=s.t, q=s.q, dq=s.dq, effort=s.effort, imu=s.imu, contacts=s.contacts, height=s.height)
+        return State(**fields, faults=None) if self.explicit_none else State(**fields)
+
+
+@pytest.mark.parametrize("explicit_none", [False, True])
+def test_a_robot_that_reports_no_faults_runs(explicit_none, tmp_path):
+    from felis.logs.runlog import RunLog
+
+    assert not State(t=0.0, q=np.zeros(2), dq=np.zeros(2)).faults.any
+    with ThirdPartyCat(explicit_none) as robot, RunLog(tmp_path / "r.mcap", robot.spec) as log:
+        report = run_loop(robot, PoseController("stand"), duration=0.3, log=log)
+    assert report.ok and report.ticks == 30
