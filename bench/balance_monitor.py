@@ -36,9 +36,10 @@ def main() -> int:
     from felis.controllers.balance import BalanceMonitor
     from felis.controllers.stepping import SteppingController
     from felis.loop import run_loop
+    from felis.scenarios.push import Push
     from felis.sim import MujocoRobot
     from felis.sim.bodymodel import load_body_model
-    from felis.sim.pushes import Push, Pusher
+    from felis.sim.pushes import Pusher
     from felis.sim.scenarios import set_pose
     from felis.spec import load_spec
 

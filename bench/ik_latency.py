@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main() -> int:
-    from felis.controllers import armkin
+    from felis import armkin
     from felis.learning.ik.data import make_corpus, split
     from felis.learning.ik.evaluate import _batch_windows, closed_form_rule
     from felis.learning.ik.solver import IkSolver

@@ -1,7 +1,7 @@
 """What limits landing from random orientations: servo speed, fall time, which joints move (issue 5).
 
 For a few start orientations this measures how far the best loop rule turns the cat in the air before
-touchdown, and whether it lands (`felis.sim.drops.landed`), while changing one thing at a time (the results:
+touchdown, and whether it lands (`felis.scenarios.verdicts.landed`), while changing one thing at a time (the results:
 docs/landing.md, "What limits it"):
 
 1. **servo speed** ×1, ×2, ×4 from 3 m. A ×k servo is the XL330 model with k× the no-load speed and
@@ -88,10 +88,9 @@ G = 9.81
 # ----------------------------------------------------------------------------------------- the model
 def make_sim(speed: float = 1.0):
     """A `LandingSim` whose servos are ``speed``× faster (module doc)."""
-    from felis.learning.landing.evaluate import LandingSim
+    from felis.learning.landing.evaluate import LandingSim, standing_waist_height
     from felis.servos import servo_model
     from felis.sim import MujocoRobot
-    from felis.sim.drops import standing_waist_height
     from felis.sim.servo import servo_params
     from felis.spec import load_spec
 
@@ -197,8 +196,8 @@ def measure(sim, orientation, height_m: float, speed: float, waypoints, duration
     end of the run if it never touches down), the rotation (start − touchdown tilt, degrees), and the
     landing outcome."""
     from felis.controllers.landing import LandingController
-    from felis.learning.landing.nets import MAX_SPEED
-    from felis.sim.drops import Drop
+    from felis.learning.landing.policy import MAX_SPEED
+    from felis.scenarios.drop import Drop
 
     fall = math.sqrt(2.0 * height_m / G)
     rule = LoopRule(waypoints, speed * MAX_SPEED, fall + 0.1, body=body)

@@ -3,7 +3,7 @@
 **Episodes per second, one process.** An episode is one job of `felis train landing`: a seeded random
 simple behaviour (`random_simple`) dropped in one of the 7 training orientations from 3 m, 200 ticks
 at 100 Hz, 1 kHz physics (`landing_train.run_rollout`: `LandingSim.run` with the `LandingController`,
-the `LandingJudge` sub-step hook and the motion recorder), timed two ways: the *rollout* alone, and
+the `LandingRecorder` sub-step hook and the motion recorder), timed two ways: the *rollout* alone, and
 the whole *job* the evaluator maps (`landing_train.evaluate_job`: the rollout, then its features and
 scores D and S). The anchor is the loop a MuJoCo user would write by hand on the same compiled model
 (a copy, armed gains and servo parameters included): reset, the same initial state, then per tick set
@@ -41,7 +41,9 @@ import mujoco
 import numpy as np
 
 from felis.learning.common.evaluator import _chunk, make_evaluator
+from felis.learning.landing import task as lk
 from felis.learning.landing import train as lt
+from felis.learning.landing.config import TrainConfig
 from felis.learning.landing.nets import random_simple
 
 GOAL = 1.7
@@ -57,20 +59,20 @@ class Replay:
     final_qpos: np.ndarray  # felis's state at the end, for the bit-for-bit check
 
 
-def setup(population: int, seed: int = 0) -> tuple[lt.Task, list[tuple]]:
+def setup(population: int, seed: int = 0) -> tuple[lk.Task, list[tuple]]:
     """The training task (default config and samples) and one generation's jobs, as `_simple_generation`
     builds them: one population of seeded random simple behaviours per orientation, orientation-major."""
-    cfg = lt.TrainConfig(population=max(2, population), seed=seed)
-    task, _ = lt.make_task(cfg, lt._load_samples(cfg, None))
+    cfg = TrainConfig(population=max(2, population), seed=seed)
+    task, _ = lk.make_task(cfg, lk.load_task_samples(cfg, None))
     rng = np.random.default_rng(seed)
     pops = [[random_simple(rng, cfg.max_hidden) for _ in range(population)] for _ in range(task.k)]
     return task, [(b, k) for k in range(task.k) for b in pops[k]]
 
 
-def capture(sim, task: lt.Task, job: tuple) -> Replay:
+def capture(sim, task: lk.Task, job: tuple) -> Replay:
     """Run ``job``'s episode once as `run_rollout` does, recording the initial state and each tick's ctrl."""
     from felis.controllers.landing import LandingController
-    from felis.sim.drops import Drop
+    from felis.scenarios.drop import Drop
 
     behaviour, k = job
     d = sim.robot.data
@@ -106,10 +108,10 @@ def bare_episodes(m: mujoco.MjModel, d: mujoco.MjData, replays: list[Replay]) ->
 
 def rollout_episodes(jobs: list[tuple]) -> float:
     """Seconds for the rollouts alone (`run_rollout`) of ``jobs`` on this process's worker simulation."""
-    sim, task = lt._WORKER
+    sim, task = lk._WORKER
     t0 = time.perf_counter()
     for behaviour, k in jobs:
-        lt.run_rollout(sim, task, behaviour, k)
+        lk.run_rollout(sim, task, behaviour, k)
     return time.perf_counter() - t0
 
 
@@ -117,16 +119,16 @@ def job_episodes(jobs: list[tuple]) -> float:
     """Seconds for the whole jobs (`evaluate_job`: rollout and scoring)."""
     t0 = time.perf_counter()
     for j in jobs:
-        lt.evaluate_job(j)
+        lk.evaluate_job(j)
     return time.perf_counter() - t0
 
 
-def episode_speed(task: lt.Task, jobs: list[tuple], repeats: int) -> dict:
+def episode_speed(task: lk.Task, jobs: list[tuple], repeats: int) -> dict:
     """Part 1 (module doc): episodes/s of bare, rollout and job, and the medians of the per-batch ratios."""
     batch = [next(j for j in jobs if j[1] == k) for k in range(task.k)]  # one episode per orientation
-    lt.init_worker(task)
+    lk.init_worker(task)
     try:
-        sim = lt._WORKER[0]
+        sim = lk._WORKER[0]
         replays = [capture(sim, task, j) for j in batch]
         m = copy.deepcopy(sim.robot.model)  # armed gains, same servo parameters
         d = mujoco.MjData(m)
@@ -142,7 +144,7 @@ def episode_speed(task: lt.Task, jobs: list[tuple], repeats: int) -> dict:
             r_s.append(rollout_episodes(batch))
             j_s.append(job_episodes(batch))
     finally:
-        lt.release_worker()
+        lk.release_worker()
     n = len(batch)
     rate = lambda s: round(n / statistics.median(s), 2)  # noqa: E731
     r_ratio = sorted(b / r for b, r in zip(b_s, r_s, strict=True))
@@ -162,9 +164,9 @@ def episode_speed(task: lt.Task, jobs: list[tuple], repeats: int) -> dict:
     }
 
 
-def pool_speedup(task: lt.Task, jobs: list[tuple], repeats: int, chunksize: int | None = None) -> dict:
+def pool_speedup(task: lk.Task, jobs: list[tuple], repeats: int, chunksize: int | None = None) -> dict:
     """Part 2 (module doc): one generation's map with 1 and with 2 workers, start-up apart."""
-    evs = {w: make_evaluator(None, w, initializer=lt.init_worker, initargs=(task,), chunksize=chunksize)
+    evs = {w: make_evaluator(None, w, initializer=lk.init_worker, initargs=(task,), chunksize=chunksize)
            for w in (1, 2)}
     try:
         first, times = {}, {1: [], 2: []}
@@ -172,20 +174,20 @@ def pool_speedup(task: lt.Task, jobs: list[tuple], repeats: int, chunksize: int 
         identical = True
         for w, ev in evs.items():  # first map: start-up (fork, one simulation per worker) + the jobs
             t0 = time.perf_counter()
-            out = np.array(ev.map(lt.evaluate_job, jobs))
+            out = np.array(ev.map(lk.evaluate_job, jobs))
             first[w] = time.perf_counter() - t0
             ref = out if ref is None else ref
             identical &= bool(np.array_equal(out, ref, equal_nan=True))
         for _ in range(repeats):
             for w, ev in evs.items():
                 t0 = time.perf_counter()
-                out = np.array(ev.map(lt.evaluate_job, jobs))
+                out = np.array(ev.map(lk.evaluate_job, jobs))
                 times[w].append(time.perf_counter() - t0)
                 identical &= bool(np.array_equal(out, ref, equal_nan=True))
     finally:
         for ev in evs.values():
             ev.close()
-        lt.release_worker()
+        lk.release_worker()
     ratios = sorted(a / b for a, b in zip(times[1], times[2], strict=True))
     speedup = statistics.median(ratios)
     n, size = len(jobs), _chunk(len(jobs), 2, chunksize)

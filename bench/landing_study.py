@@ -2,7 +2,7 @@
 
 Every training here runs `felis.learning.landing.train.train_landing` with the paper's fitness (eq. 9 ×
 upright, ``fitness="eq9"``), at a smaller budget than the paper's (the settings are in the JSON). Success
-of a drop is the issue's `landed` rule (`felis.sim.drops`: feet only for 0.5 s after touchdown, then upper
+of a drop is the issue's `landed` rule (`felis.scenarios.verdicts`: feet only for 0.5 s after touchdown, then upper
 body within 30° of vertical and waist above half its standing height). Beside it the table gives the
 looser "upright" count the training logs (the upper body within 30° of vertical at the end of the 2 s
 rollout, after eq. 9's H began), which is what a cat that lands body first and rolls back onto its feet
@@ -46,8 +46,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / ".."))
 
 from felis.learning.landing.evaluate import run_drops, shipped_policy  # noqa: E402
 from felis.learning.landing.samples import TRAIN_HEIGHT_M, load_samples  # noqa: E402
-from felis.learning.landing.train import DEFAULT_SAMPLES, TrainConfig, train_landing  # noqa: E402
-from felis.sim.drops import Drop  # noqa: E402
+from felis.learning.landing.task import DEFAULT_SAMPLES  # noqa: E402
+from felis.learning.landing.train import TrainConfig, train_landing  # noqa: E402
+from felis.scenarios.drop import Drop  # noqa: E402
 
 UNTRAINED = ((160.0, 20.0, 0.0), (-110.0, 10.0, 0.0), (110.0, -30.0, 0.0), (-160.0, -20.0, 45.0))
 EXP1_ORIENTATIONS = (0, 3)  # samples 0 (180, 0, 0) and 3 (90, 0, 0): the paper's "orientation 1", and 4

@@ -47,20 +47,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from felis.drivers.imu import (
-    G,
-    ImuReader,
-    apply_mounting,
-    body_rate,
-    frames_between,
-    quat_conj,
-    quat_from_rvc,
-    quat_log,
-    quat_mul,
-    rvc_from_quat,
-)
+from felis.drivers.imu import G, ImuReader, apply_mounting, frames_between
 from felis.errors import CalibrationError, ParameterError
 from felis.hal import Imu
+from felis.rotations import body_rate, quat_conj, quat_from_ypr, quat_log, quat_mul, ypr_from_quat
 
 __all__ = ["ImuMounting", "apply_mounting", "estimate_mounting"]
 
@@ -136,12 +126,12 @@ class ImuMounting:
     @property
     def roll_deg(self) -> float:
         """The sensor's roll in the body (°, about the body's x)."""
-        return math.degrees(rvc_from_quat(self.rotation)[2])
+        return math.degrees(ypr_from_quat(self.rotation)[2])
 
     @property
     def pitch_deg(self) -> float:
         """The sensor's pitch in the body (°, about the body's y)."""
-        return math.degrees(rvc_from_quat(self.rotation)[1])
+        return math.degrees(ypr_from_quat(self.rotation)[1])
 
     def summary(self) -> str:
         """One line for the operator."""
@@ -190,7 +180,7 @@ def mounting_from_gravity(accel: np.ndarray) -> np.ndarray:
     u = u / np.linalg.norm(u)
     roll = math.atan2(u[1], u[2])
     pitch = math.atan2(-u[0], math.hypot(u[1], u[2]))
-    return quat_from_rvc(0.0, pitch, roll)
+    return quat_from_ypr(0.0, pitch, roll)
 
 
 def estimate_mounting(reader: ImuReader, seconds: float = 2.0, *, min_samples: int = 50, still_rad_s: float = 0.05,

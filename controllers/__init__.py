@@ -1,7 +1,8 @@
 """Controllers and monitors (`felis.controllers`): pure functions of HAL state and time.
 
-They import only `felis` (and `felis.learning` for inference), never a backend, so each runs
-unchanged on simulated and real robots. `make_controller` builds one by name for the CLI.
+They import only `felis` core, `felis.scenarios` and the inference modules of `felis.learning`
+(`landing.policy`, `ik.solver`, `phase.estimator`, `balance.selector`: numpy, no torch), never a backend,
+so each runs unchanged on simulated and real robots. `make_controller` builds one by name for the CLI.
 """
 
 from __future__ import annotations
@@ -9,25 +10,29 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable
 
+from felis.controllers.arm_track import LEAD_IN, ArmTrackController, trajectory_from
+from felis.controllers.balance import BalanceMonitor
+from felis.controllers.landing import LandingController
 from felis.controllers.pose import PoseController
+from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController
+from felis.controllers.stepping import SteppingController
 from felis.errors import ParameterError
 from felis.hal import Controller
+from felis.learning.balance.selector import load_selector
+from felis.learning.ik.solver import IkSolver
+from felis.learning.landing.policy import DEFAULT_POLICY, load_policy
+from felis.learning.phase.estimator import PhaseEstimator
 
 
 def _arm_track(trajectory="figure8", weights=None, lead_in: float | None = None) -> Controller:
     """The arm following a tool-point trajectory (a builtin name, a CSV file or a Trajectory) with the
     learned IK pipeline (weights: the shipped ones unless a file is given)."""
-    from felis.controllers.arm_track import LEAD_IN, ArmTrackController, trajectory_from
-    from felis.learning.ik.solver import IkSolver
-
     return ArmTrackController(trajectory_from(trajectory), IkSolver.load(weights),
                               lead_in=LEAD_IN if lead_in is None else lead_in)
 
 
 def _step_in_place(frequency_hz: float = 2.0, lift: float = 0.5) -> Controller:
     """The cat trotting in place (diagonal pairs in turn)."""
-    from felis.controllers.stepping import SteppingController
-
     return SteppingController(frequency_hz=frequency_hz, lift=lift)
 
 
@@ -62,16 +67,11 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
     selector file). ``body`` is the robot's `felis.bodymodel.BodyModel`; the CLI passes it in. ``gate``
     feeds the monitor's gait gate: ``clock`` the base's own gait clock, ``phase`` the learned phase
     estimator (`felis.learning.phase.estimator`, shipped weights) reading the joints, ``none`` nothing."""
-    from felis.controllers.balance import BalanceMonitor
-    from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController
-
     if body is None:
         raise ParameterError("controller 'balance' needs the robot's body model (the felis command provides it)")
     if base not in ("stand", "step-in-place"):
         raise ParameterError(f"balance: base must be stand or step-in-place, got {base!r}")
     if reaction == "selector":
-        from felis.learning.balance.selector import load_selector
-
         react = load_selector(selector, feature_names=FEATURES)
     elif reaction in REACTIONS:
         react = reaction
@@ -84,8 +84,6 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
         monitor.gait = lambda t: None  # not the base's clock either
     ctl = ReactiveController(make_controller(base), monitor, react)
     if gate == "phase":
-        from felis.learning.phase.estimator import PhaseEstimator
-
         est = PhaseEstimator()
         monitor.gait = est.gait
         return _Observed(ctl, est)
@@ -95,9 +93,6 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
 def _landing(policy=None, drop_height: float | None = None) -> Controller:
     """The falling cat's evolved landing nets (seed 000): the shipped policy unless a file is given;
     ``drop_height`` (m) where the robot reports no height (hardware: free-fall prediction)."""
-    from felis.controllers.landing import LandingController
-    from felis.learning.landing.nets import DEFAULT_POLICY, load_policy
-
     behaviour, _ = load_policy(DEFAULT_POLICY if policy is None else policy)  # PolicyError: one line
     return LandingController(behaviour, drop_height=drop_height)
 

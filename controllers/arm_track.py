@@ -16,16 +16,27 @@ from __future__ import annotations
 
 import numpy as np
 
-from felis.controllers import armkin
+from felis import armkin
 from felis.controllers.pose import min_jerk
+from felis.controllers.trajectories import BUILTINS, builtin_trajectory, read_trajectory_csv
 from felis.errors import ParameterError
 from felis.hal import Command, State
+from felis.learning.ik.solver import IkSolver
 from felis.spec import RobotSpec
 
 ARM_JOINTS = armkin.JOINTS
 FRAME = 0.01  # s: the pipeline's frame period (100 Hz)
 LEAD_IN = 1.5  # s: minimum-jerk move to the first point's solution
 SETTLE = 0.5  # s: holding the last pose at the end of a run
+
+
+def error_stats(err_m: np.ndarray) -> dict:
+    """mean, median, p95, p99, max of position errors, in millimetres."""
+    e = np.asarray(err_m, dtype=float) * 1e3
+    if e.size == 0:
+        return {k: None for k in ("mean_mm", "median_mm", "p95_mm", "p99_mm", "max_mm")}
+    return {"mean_mm": float(e.mean()), "median_mm": float(np.median(e)), "p95_mm": float(np.percentile(e, 95)),
+            "p99_mm": float(np.percentile(e, 99)), "max_mm": float(e.max())}
 
 
 def run_time(trajectory, lead_in: float = LEAD_IN) -> float:
@@ -38,8 +49,6 @@ def trajectory_from(source):
     object with ``t`` and ``p`` (returned as is)."""
     if hasattr(source, "t") and hasattr(source, "p"):
         return source
-    from felis.learning.ik.data import BUILTINS, builtin_trajectory, read_trajectory_csv
-
     text = str(source)
     if text in BUILTINS:
         return builtin_trajectory(text)
@@ -64,8 +73,6 @@ class ArmTrackController:
         if not (np.isfinite(lead_in) and lead_in >= 0):
             raise ParameterError(f"arm-track: lead-in must be ≥ 0 s, got {lead_in}")
         if solver is None:
-            from felis.learning.ik.solver import IkSolver
-
             solver = IkSolver.load()
         self.t = t - t[0]
         self.p = p
@@ -126,8 +133,6 @@ class ArmTrackController:
 
     def summary(self) -> dict:
         """Frames streamed, IK error of the commands and measured tracking error (mm), flagged targets."""
-        from felis.learning.ik.evaluate import error_stats
-
         return {"frames": self.frames, "unreachable": self.unreachable, "invalid": self.invalid,
                 "command_error": error_stats(np.array(self.cmd_err)),
                 "tracking_error": error_stats(np.array(self.track_err))}

@@ -60,8 +60,8 @@ import numpy as np
 from felis.bodymodel import BodyModel
 from felis.errors import ParameterError
 from felis.hal import Command, State
+from felis.rotations import G
 
-G = 9.81
 FOOT_DOWN_M = 0.03  # feet within this height of the lowest count as down
 STILL_MS = 0.05  # CoM speed (m/s) below which a balanced robot is "standing"
 MIN_LEG_M = 0.02  # l is clamped to at least this (a robot lying down)

@@ -1,7 +1,7 @@
 """Landing controller: a falling cat's policy (evolved nets, or a hand-written spine rule) through the HAL.
 
 Each tick (seed 000 §6.2): the inputs IT (joint angles, the upper body's roll and pitch from the IMU,
-the waist height; `felis.learning.landing.nets.normalise_inputs`) go to the policy, which returns joint
+the waist height; `felis.learning.landing.policy.normalise_inputs`) go to the policy, which returns joint
 velocities v (rad/s). They are integrated into position targets, q* ← clip(q* + v·Δt, limits), with
 Δt the time since the last tick; below `LANDING_HEIGHT_M` the spine targets are held straight (the
 paper's landing rule). A non-finite velocity holds the last targets.
@@ -22,10 +22,9 @@ import numpy as np
 
 from felis.errors import ParameterError
 from felis.hal import Command, State
-from felis.learning.landing.nets import JOINTS, LANDING_HEIGHT_M, landing_rule, normalise_inputs
+from felis.learning.landing.policy import JOINTS, LANDING_HEIGHT_M, landing_rule, normalise_inputs
+from felis.rotations import G
 from felis.spec import RobotSpec
-
-G = 9.81
 
 
 class LandingController:

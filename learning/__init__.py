@@ -1,1 +1,20 @@
-"""Learning (`felis.learning`): landing-net evolution, the IK LSTM, phase models. Not built yet."""
+"""Learning (`felis.learning`): one subpackage per skill, and what they share.
+
+- `landing/` — the falling cat's evolved landing nets (seed 000): `policy` (inference: inputs, gene units,
+  behaviours, the shipped policy), `nets` (operators, fitness, ranking, saving), `features` (motion
+  features, DTW), `samples` (spine-rule motion samples), `config`, `task`, `breeding`, `checkpoint`,
+  `plot` and `train` (the evolution), `evaluate` (drops judged).
+- `ik/` — the arm's learned IK (seed 001): `solver` and `infer` (inference: the pipeline, numpy nets,
+  weights), `data` and `corpus` (demonstrations), `net` and `train` (torch nets, training), `run` (a
+  training run), `evaluate`. The posture rule and the trajectories are `felis.controllers.arm_posture`
+  and `felis.controllers.trajectories`.
+- `phase/` — the gait's phase (seed 003): `estimator` and `infer` (inference: the numpy PAE encoder, the
+  online estimator), `pae` (torch PAE and FLD), `data` (gait recordings), `train`, `run`, `evaluate`, `plot`.
+- `balance/` — the strategy selector (seed 004): `selector` (inference: case base, kNN selector),
+  `compare` (the SVM, accuracies), `evaluate` (push experiments), `train`.
+- `common/` — `evaluator` (process pool or Ray), `checkpoints`, `curves` (the epoch loop and learning
+  curves of the torch nets), `jsonable` (metadata to JSON).
+
+Controllers import only the inference modules (numpy, no torch, no simulation); training, data and
+evaluation modules may import controllers and the simulation. Shipped weights are in `weights/`.
+"""

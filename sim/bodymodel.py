@@ -10,7 +10,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from felis.bodymodel import BodyModel, quat_matrix
+from felis.bodymodel import BodyModel
+from felis.rotations import quat_matrix
 from felis.sim.robot import ModelMismatch, collision_points, load_model, model_path
 from felis.spec import RobotSpec
 

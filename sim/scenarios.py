@@ -1,8 +1,11 @@
-"""Scenarios: put a simulated robot into a situation (drop, push, pose) before or during a run.
+"""Scenarios applied to MuJoCo: put a simulated robot into a situation (drop, push, pose) before or during a run.
 
-* `drop`: release the floating base at rest with its lowest point ``height`` metres above the floor
-  and the body turned by roll, pitch, yaw (degrees; R = Rz(yaw)·Ry(pitch)·Rx(roll), x forward,
-  y left, z up). Free fall to first contact then takes t = √(2h/g).
+The tasks themselves (`felis.scenarios.Drop`, `felis.scenarios.Push`, their limits and draws) are
+backend-free; this module is the physics that applies them.
+
+* `apply_drop` (`drop` from numbers): release the floating base at rest with its lowest point ``height``
+  metres above the floor and the body turned by roll, pitch, yaw (degrees; R = Rz(yaw)·Ry(pitch)·Rx(roll),
+  x forward, y left, z up). Free fall to first contact then takes t = √(2h/g).
 * `push`: an instantaneous impulse p (N·s, world frame) at a body's centre of mass; the velocity
   change is Δv = M⁻¹ Jᵀ p with J the body-CoM Jacobian (exact for an impulse, no force duration).
 * `set_pose`: place the joints (and the actuator goals) at q, at rest.
@@ -11,43 +14,15 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
 from felis.errors import ParameterError
+from felis.rotations import euler_quat
+from felis.scenarios.drop import Drop, make_drop
+from felis.scenarios.push import MAX_IMPULSE
 from felis.sim.robot import MujocoRobot
-
-MAX_DROP_HEIGHT = 20.0  # m
-MAX_IMPULSE = 50.0  # N·s
-
-
-def _finite(name: str, value: float) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ParameterError(f"{name} must be finite, got {value}")
-    return v
-
-
-def euler_quat(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
-    """Quaternion (w, x, y, z) of R = Rz(yaw)·Ry(pitch)·Rx(roll)."""
-    r, p, y = (math.radians(a) / 2 for a in (roll_deg, pitch_deg, yaw_deg))
-    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
-    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
-
-
-def quat_euler(q: np.ndarray) -> tuple[float, float, float]:
-    """Inverse of `euler_quat`: (roll, pitch, yaw) in degrees."""
-    w, x, y, z = q
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return math.degrees(roll), math.degrees(pitch), math.degrees(yaw)
 
 
 def lowest_point(m: mujoco.MjModel, d: mujoco.MjData, root: int) -> float:
@@ -82,36 +57,27 @@ def _subtree(m: mujoco.MjModel, root: int) -> set[int]:
     return out
 
 
-@dataclass(frozen=True)
-class DropInfo:
-    height: float  # m, lowest point above the floor at release
-    roll: float
-    pitch: float
-    yaw: float
-    fall_time: float  # s, √(2h/g)
+def drop(robot: MujocoRobot, height: float, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> Drop:
+    """Place the robot at rest, turned by (roll, pitch, yaw) degrees, lowest point ``height`` m up
+    (checked by `felis.scenarios.make_drop`); returns the `Drop`."""
+    return apply_drop(robot, Drop(roll, pitch, yaw, height))
 
 
-def drop(robot: MujocoRobot, height: float, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> DropInfo:
-    """Place the robot at rest, turned by (roll, pitch, yaw) degrees, lowest point ``height`` m up."""
-    h = _finite("height", height)
-    angles = [_finite(n, a) for n, a in (("roll", roll), ("pitch", pitch), ("yaw", yaw))]
-    if not 0.0 < h <= MAX_DROP_HEIGHT:
-        raise ParameterError(f"drop height must be above 0 and at most {MAX_DROP_HEIGHT:g} m, got {h:g}")
-    for n, a in zip(("roll", "pitch", "yaw"), angles, strict=True):
-        if abs(a) > 360:
-            raise ParameterError(f"drop {n} must be within ±360 degrees, got {a:g}")
-    m, d = robot.model, robot.data
+def apply_drop(robot: MujocoRobot, d: Drop) -> Drop:
+    """Place the robot at rest as the drop ``d`` says (checked first: `felis.scenarios.make_drop`), turned,
+    its lowest point ``d.height_m`` up; returns the checked drop."""
+    d = make_drop(d.height_m, d.roll_deg, d.pitch_deg, d.yaw_deg)
+    m, data = robot.model, robot.data
     adr = robot.free_joint
     if adr is None:
         raise ParameterError(f"{robot.spec.name} is fixed to the world: only a free-floating robot can be dropped")
-    d.qpos[adr:adr + 3] = 0.0
-    d.qpos[adr + 3:adr + 7] = euler_quat(*angles)
-    d.qvel[:] = 0.0
-    mujoco.mj_forward(m, d)
-    d.qpos[adr + 2] = h - lowest_point(m, d, robot.root_body)
-    mujoco.mj_forward(m, d)
-    g = float(np.linalg.norm(m.opt.gravity))
-    return DropInfo(h, *angles, fall_time=math.sqrt(2 * h / g))
+    data.qpos[adr:adr + 3] = 0.0
+    data.qpos[adr + 3:adr + 7] = euler_quat(d.roll_deg, d.pitch_deg, d.yaw_deg)
+    data.qvel[:] = 0.0
+    mujoco.mj_forward(m, data)
+    data.qpos[adr + 2] = d.height_m - lowest_point(m, data, robot.root_body)
+    mujoco.mj_forward(m, data)
+    return d
 
 
 def push(robot: MujocoRobot, body: str, impulse: np.ndarray | list[float]) -> np.ndarray:

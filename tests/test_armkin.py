@@ -1,4 +1,4 @@
-"""Arm kinematics (felis.controllers.armkin) against the MuJoCo model and in round trips."""
+"""Arm kinematics (felis.armkin) against the MuJoCo model and in round trips."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from felis.controllers import armkin as K
+from felis import armkin as K
 from felis.sim.robot import MODELS_DIR
 
 

@@ -17,8 +17,8 @@ from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController,
 from felis.controllers.stepping import Gait
 from felis.errors import ParameterError
 from felis.hal import Imu, State, Truth
+from felis.scenarios.push import Push, check_push, load_pushes, pushes_from, random_pushes
 from felis.sim.bodymodel import load_body_model
-from felis.sim.pushes import Push, check_push, load_pushes, pushes_from, random_pushes
 from felis.spec import load_spec
 
 G = 9.81
@@ -273,8 +273,8 @@ def test_monitor_arguments(body):
 
 # ----------------------------------------------------------------------------------- body model
 def test_body_model_matches_mujoco(spec, body):
+    from felis.rotations import euler_quat
     from felis.sim import MujocoRobot
-    from felis.sim.scenarios import euler_quat
 
     robot = MujocoRobot(spec)
     robot.connect()

@@ -11,16 +11,8 @@ import numpy as np
 import pytest
 
 from felis.errors import FelisError
-from felis.learning.balance.selector import (
-    STRATEGIES,
-    CaseBase,
-    KnnSelector,
-    SelectorError,
-    SvmSelector,
-    accuracy,
-    denoise,
-    exact_accuracy,
-)
+from felis.learning.balance.compare import SvmSelector, accuracy, exact_accuracy
+from felis.learning.balance.selector import STRATEGIES, CaseBase, KnnSelector, SelectorError, denoise
 
 NAMES = ("margin", "xcom_lateral", "com_speed", "phase")
 
@@ -466,7 +458,7 @@ def test_save_refuses_bad_targets(fitted, tmp_path):
 def test_score_interpolation_is_risk_averse_and_recovery_accuracy():
     """interpolate="scores": the neighbours' outcome scores are averaged and the lowest expected score
     wins, so one neighbour's fall outweighs two neighbours' slightly lower tilt."""
-    from felis.learning.balance.selector import recovery_accuracy
+    from felis.learning.balance.compare import recovery_accuracy
 
     X = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1], [5.0, 5.0], [5.1, 5.0], [5.0, 5.1]])
     S = np.array([  # none, brace, crouch, step

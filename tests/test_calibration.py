@@ -489,10 +489,10 @@ def test_run_checks_eeprom_settings_when_the_robot_connects(config_home):
 
 
 def test_cli_imu_mounting_goes_into_the_calibration_file(config_home):
-    from felis.drivers.imu import quat_from_rvc
     from felis.drivers.virtual import spawn
+    from felis.rotations import quat_from_ypr
 
-    mount = quat_from_rvc(0.0, math.radians(-4.0), math.radians(6.0))  # sensor pitched −4°, rolled 6°
+    mount = quat_from_ypr(0.0, math.radians(-4.0), math.radians(6.0))  # sensor pitched −4°, rolled 6°
     env = dict(os.environ, XDG_CONFIG_HOME=str(config_home))
     with spawn("cat", sim=True, imu_mount=mount) as vb:
         p = subprocess.run([sys.executable, "-m", "felis", "calibrate", "--robot", "cat", "--id", "t1", "--port",
@@ -533,18 +533,20 @@ def test_calibration_against_the_mujoco_model_reads_its_joint_angles_within_one_
     """Servo-in-the-loop: the horns are MuJoCo joints mounted off their marks; after calibration the
     robot's q equals the model's qpos for any pose, to one encoder tick."""
     spec = load_spec("cat")
-    vb = VirtualBus.for_robot(spec, sim=True, mount_offsets=_offsets(spec, seed=12, span_deg=45.0))
+    from felis.sim.servo_in_loop import virtual_bus
+
+    vb = virtual_bus(spec, sim=True, mount_offsets=_offsets(spec, seed=12, span_deg=45.0))
     lo = np.array([j.lower for j in spec.joints])
     hi = np.array([j.upper for j in spec.joints])
 
     def on_wait(message):
-        vb.sim.pose(np.zeros(spec.n))  # the operator holds the cat in the reference pose
+        vb.backend.pose(np.zeros(spec.n))  # the operator holds the cat in the reference pose
 
     def on_sweep(k):
         if k > 8:
-            vb.sim.pose(np.zeros(spec.n))
+            vb.backend.pose(np.zeros(spec.n))
             return True
-        vb.sim.pose(lo + (hi - lo) * k / 8)
+        vb.backend.pose(lo + (hi - lo) * k / 8)
         return False
 
     with vb:
@@ -552,8 +554,8 @@ def test_calibration_against_the_mujoco_model_reads_its_joint_angles_within_one_
             cal, _ = calibrate(bus, spec, "sim-cat", ScriptedOperator(on_wait, on_sweep))
         rng = np.random.default_rng(3)
         q = rng.uniform(lo, hi) * 0.9
-        vb.sim.pose(q)
-        model_q = vb.sim.robot.data.qpos[vb.sim.robot._qadr].copy()
+        vb.backend.pose(q)
+        model_q = vb.backend.robot.data.qpos[vb.backend.robot._qadr].copy()
         with DynamixelRobot(spec, vb.port, calibration=cal.for_robot(spec)) as robot:
             got = robot.read().q
     assert np.max(np.abs(got - model_q)) / RAD_PER_TICK <= 1.0

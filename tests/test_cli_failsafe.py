@@ -24,6 +24,11 @@ FELIS = [str(_SCRIPT)] if _SCRIPT.is_file() else [sys.executable, "-m", "felis.c
 BAUD = 1_000_000
 
 
+def _holds(proc, port: str) -> bool:
+    """Whether ``proc`` holds ``port`` (the virtual bus's own process holds it too, from the start)."""
+    return any(h.startswith(f"PID {proc.pid} ") for h in port_holders(port))
+
+
 def _env() -> dict:
     env = dict(os.environ, MUJOCO_GL="egl")
     env.setdefault("FELIS_TIMEOUT_MARGIN_MS", "40")
@@ -157,7 +162,7 @@ def test_a_signal_at_a_calibration_prompt_ends_it_with_nothing_written(tmp_path,
     proc = subprocess.Popen([*FELIS, "calibrate", "--robot", "cat", "--id", "t1", "--port", vbus.port],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and not port_holders(vbus.port):  # connected, at its first prompt
+    while time.monotonic() < deadline and not _holds(proc, vbus.port):  # connected, at its first prompt
         assert proc.poll() is None, proc.communicate()
         time.sleep(0.1)
     time.sleep(1.0)

@@ -26,12 +26,18 @@ from felis.drivers.dynamixel.robot import BUS_WATCHDOG_S, DynamixelRobot
 from felis.drivers.virtual import VirtualBus, spawn
 from felis.logs.runlog import log_info
 from felis.loop import run_loop
+from felis.sim.servo_in_loop import virtual_bus
 from felis.spec import load_spec
 
 _SCRIPT = Path(sys.executable).with_name("felis")
 FELIS = [str(_SCRIPT)] if _SCRIPT.is_file() else [sys.executable, "-m", "felis.cli.main"]
 BAUD = 1_000_000
 IDS = range(1, 13)
+
+
+def _holds(proc, port: str) -> bool:
+    """Whether ``proc`` holds ``port`` (the virtual bus's own process holds it too, from the start)."""
+    return any(h.startswith(f"PID {proc.pid} ") for h in port_holders(port))
 
 
 def _env() -> dict:
@@ -96,7 +102,7 @@ def test_a_signal_mid_sysid_recording_leaves_torque_off(vbus, tmp_path, sig):
     proc = _start("sysid", "--robot", "cat", "--port", vbus.port, "--joints", "tail_pitch", "--yes",
                   "--out", str(out_file), cwd=tmp_path)
     deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and not port_holders(vbus.port):  # until sysid holds the port
+    while time.monotonic() < deadline and not _holds(proc, vbus.port):  # until sysid holds the port
         assert proc.poll() is None, proc.communicate()
         time.sleep(0.1)
     time.sleep(2.5)  # connected, armed, into the excitation (one joint records for longer than this)
@@ -480,13 +486,13 @@ def test_an_imu_that_goes_quiet_mid_run_is_an_event_and_stops_a_controller_that_
         needs_imu = True
 
     log = _Log()
-    with VirtualBus.for_robot("cat", baud=BAUD, sim=True) as vb:
+    with virtual_bus("cat", baud=BAUD, sim=True) as vb:
         ticks = [0]
 
         def silence(state, command):
             ticks[0] += 1
             if ticks[0] == 25:
-                vb.sim._emulator.stop()
+                vb.imu.stop()
 
         with DynamixelRobot(load_spec("cat"), vb.port, BAUD, imu_port=vb.imu_port, imu_required=True) as robot:
             report = run_loop(robot, _NeedsImu(), duration=3.0, clock="wall", rate_hz=50, monitors=[silence],

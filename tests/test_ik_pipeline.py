@@ -8,10 +8,11 @@ import json
 import numpy as np
 import pytest
 
+from felis import armkin
 from felis.cli.main import main
-from felis.controllers import armkin
+from felis.controllers.trajectories import builtin_trajectory, write_trajectory_csv
 from felis.errors import TrajectoryError
-from felis.learning.ik.data import builtin_trajectory, make_corpus, split, write_trajectory_csv
+from felis.learning.ik.data import make_corpus, split
 from felis.learning.ik.solver import DEFAULT_WEIGHTS, DT, IkSolver, mean_filter, smooth_pitch
 
 
@@ -125,7 +126,8 @@ def test_felis_run_arm_track_through_the_virtual_bus(tmp_path, capsys):
 
 
 def test_felis_ik_demos_writes_the_corpus_and_its_test_split(tmp_path, capsys):
-    from felis.learning.ik.data import load_corpus, read_trajectory_csv
+    from felis.controllers.trajectories import read_trajectory_csv
+    from felis.learning.ik.corpus import load_corpus
 
     assert main(["ik", "demos", "--out", str(tmp_path / "d"), "--corpus", "10", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
@@ -173,7 +175,7 @@ def test_mismatched_or_corrupt_weights_are_one_line(tmp_path, capsys):
 
 
 def test_training_is_deterministic_on_a_tiny_corpus(tmp_path):
-    from felis.learning.ik.net import load_arrays
+    from felis.learning.ik.infer import load_arrays
     from felis.learning.ik.run import IkTrainConfig, train_ik
 
     cfg = dict(corpus=6, hidden=8, layers=1, epochs=2, batch=256, stride=8, threads=1)
@@ -188,7 +190,7 @@ def test_training_is_deterministic_on_a_tiny_corpus(tmp_path):
 
 
 def test_eval_flags_unreachable_targets_in_a_file_and_carries_on(tmp_path, capsys):
-    from felis.learning.ik.data import Trajectory
+    from felis.controllers.trajectories import Trajectory
 
     traj = builtin_trajectory("circle", duration=2.0)
     p = traj.p.copy()

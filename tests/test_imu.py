@@ -19,18 +19,13 @@ from felis.drivers.imu import (
     ImuReader,
     RvcEmulator,
     RvcParser,
-    body_rate,
     checksum,
     decode_frame,
     encode_frame,
     frames_between,
-    quat_conj,
-    quat_from_rvc,
-    quat_mul,
-    quat_rotate,
-    rvc_from_quat,
 )
 from felis.errors import CommError
+from felis.rotations import body_rate, quat_conj, quat_from_ypr, quat_mul, quat_rotate, ypr_from_quat
 
 # By hand from the spec: AA AA | index 5 | yaw 10.00° = 1000 = 0x03E8 | pitch -5.00° = -500 = 0xFE0C |
 # roll 1.00° = 100 = 0x0064 | accel x 0, y 0, z 1000 mg = 0x03E8 | reserved 00 00 00 |
@@ -114,17 +109,17 @@ def test_decode_values_are_what_the_wire_says():
 def test_euler_is_intrinsic_z_y_x():
     y, p, r = 0.7, -0.4, 1.1
     expected = quat_mul(quat_mul(_axis_quat([0, 0, 1], y), _axis_quat([0, 1, 0], p)), _axis_quat([1, 0, 0], r))
-    assert quat_from_rvc(y, p, r) == pytest.approx(expected, abs=1e-12)
+    assert quat_from_ypr(y, p, r) == pytest.approx(expected, abs=1e-12)
     # right-hand rule: yaw +90° turns x into y; pitch +90° turns x into -z; roll +90° turns y into z
-    assert quat_rotate(quat_from_rvc(math.pi / 2, 0, 0), [1, 0, 0]) == pytest.approx([0, 1, 0], abs=1e-12)
-    assert quat_rotate(quat_from_rvc(0, math.pi / 2, 0), [1, 0, 0]) == pytest.approx([0, 0, -1], abs=1e-12)
-    assert quat_rotate(quat_from_rvc(0, 0, math.pi / 2), [0, 1, 0]) == pytest.approx([0, 0, 1], abs=1e-12)
+    assert quat_rotate(quat_from_ypr(math.pi / 2, 0, 0), [1, 0, 0]) == pytest.approx([0, 1, 0], abs=1e-12)
+    assert quat_rotate(quat_from_ypr(0, math.pi / 2, 0), [1, 0, 0]) == pytest.approx([0, 0, -1], abs=1e-12)
+    assert quat_rotate(quat_from_ypr(0, 0, math.pi / 2), [0, 1, 0]) == pytest.approx([0, 0, 1], abs=1e-12)
 
 
 @settings(max_examples=300, deadline=None)
 @given(angle, st.floats(-math.pi / 2 + 1e-3, math.pi / 2 - 1e-3), angle)
 def test_euler_quat_euler_round_trip(yaw, pitch, roll):
-    y, p, r = rvc_from_quat(quat_from_rvc(yaw, pitch, roll))
+    y, p, r = ypr_from_quat(quat_from_ypr(yaw, pitch, roll))
     assert -math.pi <= y < math.pi and -math.pi <= r < math.pi
     assert _wrapped_diff(y, yaw) < 1e-9 and abs(p - pitch) < 1e-9 and _wrapped_diff(r, roll) < 1e-9
 
@@ -136,17 +131,17 @@ unit = st.floats(-1, 1, allow_nan=False)
 @given(st.tuples(unit, unit, unit, unit).filter(lambda v: np.linalg.norm(v) > 0.1))
 def test_quat_euler_quat_round_trip(v):
     q = np.array(v) / np.linalg.norm(v)
-    assert _rot_angle(q, quat_from_rvc(*rvc_from_quat(q))) < 1e-7
+    assert _rot_angle(q, quat_from_ypr(*ypr_from_quat(q))) < 1e-7
 
 
 def test_gimbal_lock():
     for pitch in (math.pi / 2, -math.pi / 2):
-        q = quat_from_rvc(0.3, pitch, -0.5)
-        y, p, r = rvc_from_quat(q)
+        q = quat_from_ypr(0.3, pitch, -0.5)
+        y, p, r = ypr_from_quat(q)
         assert p == pytest.approx(pitch) and r == 0.0
-        assert _rot_angle(q, quat_from_rvc(y, p, r)) < 1e-9
+        assert _rot_angle(q, quat_from_ypr(y, p, r)) < 1e-9
     with pytest.raises(ValueError):
-        rvc_from_quat([0, 0, 0, 0])
+        ypr_from_quat([0, 0, 0, 0])
 
 
 @settings(max_examples=200, deadline=None)
@@ -156,7 +151,7 @@ def test_wire_round_trip_within_quantisation(v, accel, index):
     """quat -> yaw/pitch/roll -> 0.01° on the wire -> quat: each angle is off by ≤ 0.005°, so the
     composed rotation by ≤ 0.015°; accel by ≤ 0.5 mg."""
     q = np.array(v) / np.linalg.norm(v)
-    f = decode_frame(encode_frame(index, *np.degrees(rvc_from_quat(q)), accel))
+    f = decode_frame(encode_frame(index, *np.degrees(ypr_from_quat(q)), accel))
     assert f.index == index
     assert math.degrees(_rot_angle(q, f.quat)) <= 0.015 + 1e-9
     assert np.abs(f.accel - accel).max() <= 0.5e-3 * G + 1e-12
@@ -164,7 +159,7 @@ def test_wire_round_trip_within_quantisation(v, accel, index):
 
 def test_body_rate_from_quaternion_difference():
     w = np.array([0.3, -1.2, 2.0])
-    q0 = quat_from_rvc(0.5, 0.2, -0.3)
+    q0 = quat_from_ypr(0.5, 0.2, -0.3)
     dt = 0.01
     q1 = quat_mul(q0, _axis_quat(w / np.linalg.norm(w), np.linalg.norm(w) * dt))  # body-frame rotation
     assert body_rate(q0, q1, dt) == pytest.approx(w, rel=1e-9)
@@ -263,7 +258,7 @@ class _Turntable:
 
     def __init__(self, omega: float = 1.0, rate_hz: float = 100.0):
         self.omega, self.rate_hz, self.history = omega, rate_hz, []
-        self.tilt = quat_from_rvc(0.0, math.radians(10), math.radians(-20))
+        self.tilt = quat_from_ypr(0.0, math.radians(10), math.radians(-20))
 
     def __call__(self):
         q = quat_mul(_axis_quat([0, 0, 1], self.omega * len(self.history) / self.rate_hz), self.tilt)

@@ -16,26 +16,23 @@ from felis.calib.imu import ImuMounting, apply_mounting, estimate_mounting, moun
 from felis.cli.virtualbus import _imu_options
 from felis.drivers.dynamixel.bus import DynamixelBus
 from felis.drivers.dynamixel.robot import IMU_MAX_AGE_S, Calibration, DynamixelRobot
-from felis.drivers.imu import (
-    RATE_HZ,
-    G,
-    ImuReader,
-    RvcEmulator,
-    SensorMount,
+from felis.drivers.imu import RATE_HZ, G, ImuReader, RvcEmulator, SensorMount
+from felis.drivers.virtual import spawn
+from felis.errors import CalibrationError, ParameterError
+from felis.hal import Imu
+from felis.rotations import (
     body_rate,
     quat_conj,
     quat_exp,
-    quat_from_rvc,
+    quat_from_ypr,
     quat_log,
     quat_matrix,
     quat_mul,
     quat_rotate,
-    rvc_from_quat,
+    ypr_from_quat,
 )
-from felis.drivers.virtual import VirtualBus, spawn
-from felis.errors import CalibrationError, ParameterError
-from felis.hal import Imu
 from felis.sim import MujocoRobot
+from felis.sim.servo_in_loop import virtual_bus
 from felis.spec import load_spec
 
 ROLL, PITCH = 6.0, -4.0  # degrees: the simulated mis-mounting
@@ -44,7 +41,7 @@ UP = np.array([0.0, 0.0, G])
 
 
 def _rpy(roll_deg: float, pitch_deg: float, yaw_deg: float = 0.0) -> np.ndarray:
-    return quat_from_rvc(math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg))
+    return quat_from_ypr(math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg))
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -102,14 +99,14 @@ def test_yaw_is_kept_and_a_mount_yaw_only_turns_the_level_body():
     for body_yaw in (0.0, 40.0, -170.0):
         q_ws, a_s = SensorMount(q_bs).sample(_rpy(0, 0, body_yaw), UP)
         est = ImuMounting(mounting_from_gravity(a_s), np.zeros(3))
-        yaw, pitch, roll = np.degrees(rvc_from_quat(est.apply(Imu(q_ws, np.zeros(3), a_s)).quat))
+        yaw, pitch, roll = np.degrees(ypr_from_quat(est.apply(Imu(q_ws, np.zeros(3), a_s)).quat))
         assert (roll, pitch, yaw) == pytest.approx((0, 0, body_yaw), abs=1e-7)
     # A yaw in the mount is not observable: the estimate has none, the corrected body is level but turned.
     q_ws, a_s = SensorMount(_rpy(ROLL, PITCH, 15.0)).sample(_rpy(0, 0, 40.0), UP)
     est = ImuMounting(mounting_from_gravity(a_s), np.zeros(3))
     assert (est.roll_deg, est.pitch_deg) == pytest.approx((ROLL, PITCH), abs=1e-9)
     body = est.apply(Imu(q_ws, np.zeros(3), a_s))
-    assert _tilt_deg(body.quat) < 1e-7 and math.degrees(rvc_from_quat(body.quat)[0]) == pytest.approx(55.0)
+    assert _tilt_deg(body.quat) < 1e-7 and math.degrees(ypr_from_quat(body.quat)[0]) == pytest.approx(55.0)
     assert _vec_angle_deg(body.accel, UP) < 1e-7
 
 
@@ -204,7 +201,7 @@ def test_accel_far_from_g_is_rejected():
 
 
 def test_a_large_tilt_is_rejected():
-    with VirtualBus.for_robot("cat", sim=True, imu_mount=_rpy(-90, 0)) as bus, ImuReader(bus.imu_port) as reader:
+    with virtual_bus("cat", sim=True, imu_mount=_rpy(-90, 0)) as bus, ImuReader(bus.imu_port) as reader:
         with pytest.raises(CalibrationError, match="tilted 90.0° .* not on a level surface or the IMU is mounted "
                                                    "on its side"):
             estimate_mounting(reader, 0.6, min_samples=20)
@@ -212,9 +209,9 @@ def test_a_large_tilt_is_rejected():
 
 def test_virtual_mount_options_are_checked():
     with pytest.raises(ParameterError, match="sim=True"):
-        VirtualBus.for_robot("cat", imu_mount=_rpy(ROLL, PITCH))
+        virtual_bus("cat", imu_mount=_rpy(ROLL, PITCH))
     with pytest.raises(ParameterError, match="arm has none"):
-        VirtualBus.for_robot("arm", sim=True, imu_drift=DRIFT)
+        virtual_bus("arm", sim=True, imu_drift=DRIFT)
     with pytest.raises(ParameterError, match="unit quaternion"):
         spawn("cat", sim=True, imu_mount=[1.0, 1.0, 0.0, 0.0])
     opts = _imu_options(argparse.Namespace(imu_mount_deg="6,-4,10", imu_drift="0.01,-0.02,0.005"))
@@ -269,14 +266,14 @@ def test_a_quiet_imu_is_no_reading_not_a_frozen_one():
     """The IMU emulator's thread stops (its source fails): the port stays open but goes quiet. The robot
     then reports no IMU reading instead of repeating the last orientation."""
     spec = load_spec("cat")
-    with VirtualBus.for_robot("cat", sim=True) as bus, _robot(spec, bus) as robot:
+    with virtual_bus("cat", sim=True) as bus, _robot(spec, bus) as robot:
         assert robot.imu.wait(robot.imu.frames + 3) and robot.read().imu is not None
 
         def broken():
             raise RuntimeError("sensor failed")
 
-        bus.sim._emulator.source = broken
-        assert _wait_until(lambda: bus.sim._emulator.error is not None)
+        bus.imu.emulator.source = broken
+        assert _wait_until(lambda: bus.imu.emulator.error is not None)
         time.sleep(IMU_MAX_AGE_S + 0.05)
         assert robot.read().imu is None and robot.imu.error is None  # quiet, not vanished
 

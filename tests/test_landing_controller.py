@@ -17,8 +17,8 @@ from felis.controllers.landing import LandingController
 from felis.errors import ParameterError
 from felis.hal import Imu, State
 from felis.learning.landing.evaluate import LandingSim
-from felis.learning.landing.nets import LANDING_HEIGHT_M
-from felis.sim.drops import Drop
+from felis.learning.landing.policy import LANDING_HEIGHT_M
+from felis.scenarios.drop import Drop
 from felis.spec import load_spec
 
 UP = Imu(np.array([1.0, 0, 0, 0]), np.zeros(3), np.array([0, 0, 9.81]))
@@ -166,7 +166,7 @@ def test_cli_run_landing_drop_through_the_virtual_bus(tmp_path, policy):
 def test_cli_run_landing_shipped_policy_through_the_virtual_bus(tmp_path):
     """The shipped policy (the default) through the whole hardware path rights the demo's drop (1 m, tilted
     56°); the same drop held still ends on its back (test_landing_eval)."""
-    from felis.cli.main import DEMO_DROP
+    from felis.cli.demo import DEMO_DROP
 
     h, r, p, y = (str(v) for v in DEMO_DROP)
     out = _ok(_felis(tmp_path, "run", "landing", "--robot", "cat", "--height", h, "--roll", r, "--pitch", p,
@@ -198,14 +198,15 @@ def test_drop_errors_are_one_line(tmp_path, argv, needles):
 
 
 def test_virtual_bus_holds_the_dropped_robot_until_torque_comes_on():
-    from felis.drivers.imu import quat_rotate
-    from felis.drivers.virtual import VirtualBus, spawn
+    from felis.drivers.virtual import spawn
+    from felis.rotations import quat_rotate
+    from felis.sim.servo_in_loop import virtual_bus
 
-    with VirtualBus.for_robot("cat", sim=True, drop=(0.5, 0.0, 90.0, 0.0)) as bus:
-        state = bus.sim.robot.read()
-        assert bus.sim.drop_info.height == 0.5 and state.t == 0.0
+    with virtual_bus("cat", sim=True, drop=(0.5, 0.0, 90.0, 0.0)) as bus:
+        state = bus.backend.robot.read()
+        assert bus.backend.drop_info.height == 0.5 and state.t == 0.0
         assert state.height > 0.5  # the waist, above the lowest point
-        quat, accel = bus.sim._imu_sample()
+        quat, accel = bus.backend.imu_sample()
         assert quat_rotate(quat, np.array([1.0, 0, 0]))[2] == pytest.approx(-1.0, abs=1e-3)  # nose down
         assert quat_rotate(quat, accel) == pytest.approx([0, 0, 9.81], abs=0.05)  # held: the hands' reaction
     for kw, needle in [({"drop": (1, 0, 0)}, "four finite numbers"), ({"drop": (0, 0, 0, 0)}, "drop height"),

@@ -1,5 +1,5 @@
 """Landing evaluation (issue 5): the `landed` rule on constructed cases, the drops file parser, real
-drops judged on MuJoCo, and `felis eval landing` (through its own `register`)."""
+drops judged on MuJoCo, and `felis eval landing` (through its own `register_eval`)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import math
 
 import pytest
 
-from felis.cli.landing import cmd_eval_landing, register
+from felis.cli.landing import cmd_eval_landing, register_eval, register_train
 from felis.errors import ParameterError
 from felis.learning.landing.evaluate import LandingSim, check_policy, run_drops, summarise
-from felis.sim.drops import (
+from felis.scenarios import (
     TILT_DEG,
     WAIST_FRACTION,
     WINDOW_S,
@@ -219,9 +219,9 @@ def test_summarise_and_run_drops_in_order():
 def test_shipped_policy_rights_the_demo_drop_that_passive_does_not():
     """The shipped policy (learning/weights/landing.npz) against holding still, on the demo's drop (1 m,
     tilted 56°) and on a drop it cannot right (upside down): what the policy adds, and where it stops."""
-    from felis.cli.main import DEMO_DROP
+    from felis.cli.demo import DEMO_DROP
     from felis.learning.landing.evaluate import default_policy, shipped_policy
-    from felis.learning.landing.nets import load_policy
+    from felis.learning.landing.policy import load_policy
 
     assert default_policy() == "shipped" and check_policy("shipped") == "shipped"
     load_policy(shipped_policy())  # a valid policy file
@@ -238,7 +238,8 @@ def _args(argv: list[str]) -> argparse.Namespace:
     sub = p.add_subparsers(dest="command")
     train = sub.add_parser("train").add_subparsers(dest="train_command")
     evl = sub.add_parser("eval").add_subparsers(dest="eval_command")
-    register(train, evl, argparse.ArgumentParser)
+    register_train(train)
+    register_eval(evl)
     assert "landing" in train.choices
     return p.parse_args(["eval", "landing", *argv])
 

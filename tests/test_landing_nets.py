@@ -1,4 +1,5 @@
-"""Landing-controller nets, genome, ranking and policy files (`felis.learning.landing.nets`; seed 000 §5–6)."""
+"""Landing-controller nets, genome, ranking and policy files (`felis.learning.landing.policy` and
+`felis.learning.landing.nets`; seed 000 §5–6)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,12 @@ import time
 import numpy as np
 import pytest
 
-from felis.errors import FelisError, ParameterError
+from felis import rotations as R
+from felis.errors import FelisError, ParameterError, PolicyError
 from felis.learning.landing import nets as L
-from felis.learning.landing.nets import ComplexBehaviour, GeneUnit, PolicyError, SimpleBehaviour, SimpleResult
+from felis.learning.landing import policy as P
+from felis.learning.landing.nets import SimpleResult
+from felis.learning.landing.policy import ComplexBehaviour, GeneUnit, SimpleBehaviour
 
 
 def rng(seed: int = 0) -> np.random.Generator:
@@ -42,64 +46,64 @@ def one_line(e: pytest.ExceptionInfo) -> str:
 def test_joint_order_and_speed_match_the_cat_description():
     from felis.spec import load_spec
 
-    assert L.JOINTS == load_spec("cat").names
-    assert L.MAX_SPEED == pytest.approx(10.79, abs=0.01)
-    assert [len(L.KINDS[k].outputs) for k in ("spine", "tail", "legs", "compose")] == [2, 2, 8, 3]
-    assert L.KINDS["tail"].n_available == L.KINDS["legs"].n_available == 17 and L.N_IT == 15
-    joints = sum((L.KINDS[p].joints for p in L.PARTS), ())
+    assert P.JOINTS == load_spec("cat").names
+    assert P.MAX_SPEED == pytest.approx(10.79, abs=0.01)
+    assert [len(P.KINDS[k].outputs) for k in ("spine", "tail", "legs", "compose")] == [2, 2, 8, 3]
+    assert P.KINDS["tail"].n_available == P.KINDS["legs"].n_available == 17 and P.N_IT == 15
+    joints = sum((P.KINDS[p].joints for p in P.PARTS), ())
     assert joints == tuple(range(12))
 
 
 def test_normalise_inputs():
     q = np.linspace(-1.0, 1.0, 12)
-    it = L.normalise_inputs(q, [1, 0, 0, 0], 1.5)
+    it = P.normalise_inputs(q, [1, 0, 0, 0], 1.5)
     assert it.shape == (15,)
     np.testing.assert_allclose(it[0:4], q[0:4] / math.pi)
     np.testing.assert_allclose(it[7:15], q[4:12] / math.pi)
     assert it[4] == 0 and it[5] == 0 and it[6] == pytest.approx(0.5)
-    it = L.normalise_inputs(np.zeros(12), quat_axis([1, 0, 0], math.pi / 2), 0.0)
+    it = P.normalise_inputs(np.zeros(12), quat_axis([1, 0, 0], math.pi / 2), 0.0)
     assert it[4] == pytest.approx(0.5) and it[5] == pytest.approx(0.0, abs=1e-12)
-    it = L.normalise_inputs(np.zeros(12), quat_axis([0, 1, 0], math.pi / 4), 0.0)
+    it = P.normalise_inputs(np.zeros(12), quat_axis([0, 1, 0], math.pi / 4), 0.0)
     assert it[4] == pytest.approx(0.0, abs=1e-12) and it[5] == pytest.approx(0.5)
-    upside_down = L.normalise_inputs(np.zeros(12), quat_axis([1, 0, 0], math.pi), 0.0)
+    upside_down = P.normalise_inputs(np.zeros(12), quat_axis([1, 0, 0], math.pi), 0.0)
     assert abs(upside_down[4]) == pytest.approx(1.0)  # told apart from upright (0)
     # roll then pitch, R = Ry(pitch)·Rx(roll): recovered
     qr, qp = quat_axis([1, 0, 0], 0.3), quat_axis([0, 1, 0], -0.4)
     w1, v1, w2, v2 = qp[0], qp[1:], qr[0], qr[1:]
     qq = np.concatenate(([w1 * w2 - v1 @ v2], w1 * v2 + w2 * v1 + np.cross(v1, v2)))
-    assert L.roll_pitch(qq) == pytest.approx((0.3, -0.4))
-    assert L.up_z([1, 0, 0, 0]) == 1.0 and L.up_z(quat_axis([1, 0, 0], math.pi)) == pytest.approx(-1.0)
+    assert R.roll_pitch(qq) == pytest.approx((0.3, -0.4))
+    assert R.up_z([1, 0, 0, 0]) == 1.0 and R.up_z(quat_axis([1, 0, 0], math.pi)) == pytest.approx(-1.0)
     with pytest.raises(ParameterError):
-        L.normalise_inputs(np.zeros(11), [1, 0, 0, 0], 1.0)
+        P.normalise_inputs(np.zeros(11), [1, 0, 0, 0], 1.0)
     with pytest.raises(ParameterError):
-        L.normalise_inputs(np.zeros(12), [0, 0, 0, 0], 1.0)
+        P.normalise_inputs(np.zeros(12), [0, 0, 0, 0], 1.0)
 
 
 def test_landing_rule():
     t = np.array([0.3, -0.2])
-    np.testing.assert_array_equal(L.landing_rule(1.0, t), t)
-    np.testing.assert_array_equal(L.landing_rule(L.LANDING_HEIGHT_M, t), t)  # "below" is strict
-    np.testing.assert_array_equal(L.landing_rule(0.4, t), [0.0, 0.0])
+    np.testing.assert_array_equal(P.landing_rule(1.0, t), t)
+    np.testing.assert_array_equal(P.landing_rule(P.LANDING_HEIGHT_M, t), t)  # "below" is strict
+    np.testing.assert_array_equal(P.landing_rule(0.4, t), [0.0, 0.0])
     np.testing.assert_array_equal(t, [0.3, -0.2])  # input untouched
     with pytest.raises(ParameterError):
-        L.landing_rule(0.1, np.zeros(3))
+        P.landing_rule(0.1, np.zeros(3))
 
 
 # ------------------------------------------------------------------------------------------ forward
 
 
-@pytest.mark.parametrize("kind", list(L.KINDS))
+@pytest.mark.parametrize("kind", list(P.KINDS))
 def test_forward_shapes_ranges_and_formula(kind):
     r = rng(1)
     for _ in range(20):
         u = L.random_unit(kind, r).check()
-        x = r.uniform(-1, 1, L.KINDS[kind].n_available)
+        x = r.uniform(-1, 1, P.KINDS[kind].n_available)
         y = u(x)
         assert y.shape == (len(u.outputs),)
         assert np.all(np.abs(y) < u.scale)
         np.testing.assert_allclose(y, manual_forward(u, x), rtol=1e-12, atol=1e-12)
         assert 1 <= u.hidden <= L.MAX_HIDDEN and u.W1.shape == (u.hidden, len(u.inputs) + 1)
-    assert u.scale == (1.0 if kind == "compose" else L.MAX_SPEED)
+    assert u.scale == (1.0 if kind == "compose" else P.MAX_SPEED)
 
 
 def test_weights_are_read_only():
@@ -111,17 +115,17 @@ def test_weights_are_read_only():
 def test_simple_behaviour_feeds_spine_outputs_to_tail_and_legs():
     r = rng(2)
     spine = L.random_unit("spine", r)
-    tail = GeneUnit("tail", (15, 16), 1, [[1.0, -1.0, 0.0]], [[1.0, 0.0], [0.0, 0.5]], L.MAX_SPEED)
+    tail = GeneUnit("tail", (15, 16), 1, [[1.0, -1.0, 0.0]], [[1.0, 0.0], [0.0, 0.5]], P.MAX_SPEED)
     legs = L.random_unit("legs", r)
     b = SimpleBehaviour(spine, tail, legs).check()
     it = r.uniform(-1, 1, 15)
     v = b.velocities(it)
-    assert v.shape == (12,) and np.all(np.abs(v) <= L.MAX_SPEED)
+    assert v.shape == (12,) and np.all(np.abs(v) <= P.MAX_SPEED)
     s = spine(it)
     np.testing.assert_allclose(v[0:2], s)
-    hid = math.tanh(s[0] / L.MAX_SPEED - s[1] / L.MAX_SPEED)
-    np.testing.assert_allclose(v[2:4], L.MAX_SPEED * np.tanh([hid, 0.5]))
-    np.testing.assert_allclose(v[4:12], legs(np.concatenate((it, s / L.MAX_SPEED))))
+    hid = math.tanh(s[0] / P.MAX_SPEED - s[1] / P.MAX_SPEED)
+    np.testing.assert_allclose(v[2:4], P.MAX_SPEED * np.tanh([hid, 0.5]))
+    np.testing.assert_allclose(v[4:12], legs(np.concatenate((it, s / P.MAX_SPEED))))
     with pytest.raises(ParameterError):
         b.velocities(np.zeros(12))
 
@@ -135,9 +139,9 @@ def test_simple_behaviour_check_rejects_wrong_part():
 
 
 def test_dispatch_index():
-    np.testing.assert_array_equal(L.dispatch_index(np.array([-1.0, 1.0, 0.0, -0.99, 0.99]), 7), [0, 6, 3, 0, 6])
-    np.testing.assert_array_equal(L.dispatch_index(np.array([-0.5, -0.49, 0.5]), 4), [1, 1, 3])
-    assert L.dispatch_index(0.3, 1) == 0
+    np.testing.assert_array_equal(P.dispatch_index(np.array([-1.0, 1.0, 0.0, -0.99, 0.99]), 7), [0, 6, 3, 0, 6])
+    np.testing.assert_array_equal(P.dispatch_index(np.array([-0.5, -0.49, 0.5]), 4), [1, 1, 3])
+    assert P.dispatch_index(0.3, 1) == 0
 
 
 def compose_choosing(values: tuple[float, float, float]) -> GeneUnit:
@@ -157,7 +161,7 @@ def test_complex_behaviour_dispatches_each_part():
     v = c.velocities(it)
     s = bs[2].spine.raw(it)
     x = np.concatenate((it, s))
-    np.testing.assert_allclose(v[0:2], L.MAX_SPEED * s)
+    np.testing.assert_allclose(v[0:2], P.MAX_SPEED * s)
     np.testing.assert_allclose(v[2:4], bs[0].tail(x))
     np.testing.assert_allclose(v[4:12], bs[1].legs(x))
     same = ComplexBehaviour(bs, compose_choosing((-0.9, -0.9, -0.9)))
@@ -170,7 +174,7 @@ def test_complex_behaviour_dispatches_each_part():
 
 def test_simple_behaviour_is_fast():
     r = rng(5)
-    b = SimpleBehaviour(*(L.random_unit(p, r, max_hidden=8) for p in L.PARTS))
+    b = SimpleBehaviour(*(L.random_unit(p, r, max_hidden=8) for p in P.PARTS))
     it = r.uniform(-1, 1, 15)
     n, best = 2000, math.inf
     for _ in range(5):
@@ -216,7 +220,7 @@ def distinct_parents(kind: str, seed: int) -> tuple[GeneUnit, GeneUnit]:
     return a, b
 
 
-@pytest.mark.parametrize("kind", list(L.KINDS))
+@pytest.mark.parametrize("kind", list(P.KINDS))
 def test_crossover_same_structure_takes_each_neuron_from_one_parent(kind):
     seen = set()
     for seed in range(20):
@@ -248,17 +252,17 @@ def test_crossover_different_structure_copies_the_first_parent():
 
 def test_mutation_keeps_invariants_over_many_steps():
     r = rng(9)
-    for kind in L.KINDS:
+    for kind in P.KINDS:
         u = L.random_unit(kind, r)
         for _ in range(500):
             u = L.mutate(u, r, p_weight=0.3, sigma=0.2, p_structure=0.5, max_hidden=5).check()
-            assert 1 <= u.hidden <= 5 and 1 <= len(u.inputs) <= L.KINDS[kind].n_available
+            assert 1 <= u.hidden <= 5 and 1 <= len(u.inputs) <= P.KINDS[kind].n_available
 
 
 def test_structural_mutation_changes_one_count_and_keeps_other_weights():
     ops = set()
     for seed in range(200):
-        kind = list(L.KINDS)[seed % 4]
+        kind = list(P.KINDS)[seed % 4]
         p = L.random_unit(kind, rng(seed), max_hidden=6)
         c = L.mutate(p, rng(10_000 + seed), p_weight=0.0, sigma=0.3, p_structure=1.0, max_hidden=6).check()
         di, dh = len(c.inputs) - len(p.inputs), c.hidden - p.hidden
@@ -328,7 +332,7 @@ def test_same_seed_gives_bit_identical_units():
         a, b = L.random_simple(r), L.random_simple(r)
         for _ in range(20):
             a = L.crossover_simple(L.mutate_simple(a, r, p_structure=0.3), b, r)
-        return [getattr(a, p) for p in L.PARTS]
+        return [getattr(a, p) for p in P.PARTS]
 
     for u, v in zip(run(42), run(42), strict=True):
         assert u.inputs == v.inputs and u.hidden == v.hidden
@@ -453,13 +457,13 @@ def test_save_load_round_trip(tmp_path):
     its = r.uniform(-1, 1, (50, 15))
     for name, b in (("s.npz", simple), ("c.npz", cplx)):
         p = L.save_policy(tmp_path / "sub" / name, b, {"orientation": 3, "generation": 120})
-        b2, meta = L.load_policy(p)
+        b2, meta = P.load_policy(p)
         assert type(b2) is type(b) and meta == {"orientation": 3, "generation": 120}
         for it in its:
             assert b2.velocities(it).tobytes() == b.velocities(it).tobytes()
     assert not list(tmp_path.rglob("*.tmp"))
     doc = json.loads(str(np.load(tmp_path / "sub" / "c.npz")["__meta__"]))
-    assert doc["format"] == L.FORMAT and doc["version"] == 1 and doc["type"] == "complex" and doc["behaviours"] == 3
+    assert doc["format"] == P.FORMAT and doc["version"] == 1 and doc["type"] == "complex" and doc["behaviours"] == 3
 
 
 def rewrite(path, change) -> None:
@@ -516,7 +520,7 @@ def test_bad_policy_file_is_one_line(tmp_path, case):
             arrays["__meta__"] = BAD_META[case]
         np.savez(p, **arrays)
     with pytest.raises(PolicyError) as e:
-        L.load_policy(p)
+        P.load_policy(p)
     assert str(p) in one_line(e)
 
 
@@ -535,14 +539,14 @@ def test_bad_files_on_disk_are_one_line(tmp_path):
     folder.mkdir()
     for p in (tmp_path / "missing.npz", text, trunc, pick, single, folder):
         with pytest.raises(PolicyError) as e:
-            L.load_policy(p)
+            P.load_policy(p)
         assert str(p) in one_line(e)
 
 
 def test_save_refuses_bad_behaviour_and_path(tmp_path):
     b = L.random_simple(rng(23))
     broken = SimpleBehaviour(b.spine, b.tail, GeneUnit("legs", b.legs.inputs, b.legs.hidden,
-                                                       np.full(b.legs.W1.shape, np.nan), b.legs.W2, L.MAX_SPEED))
+                                                       np.full(b.legs.W1.shape, np.nan), b.legs.W2, P.MAX_SPEED))
     with pytest.raises(PolicyError) as e:
         L.save_policy(tmp_path / "x.npz", broken)
     one_line(e)

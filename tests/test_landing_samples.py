@@ -12,7 +12,7 @@ import pytest
 
 from felis.errors import ParameterError
 from felis.learning.landing.features import FEATURE_BODIES
-from felis.learning.landing.nets import MAX_SPEED
+from felis.learning.landing.policy import MAX_SPEED
 from felis.learning.landing.samples import (
     STEPS,
     TRAIN_HEIGHT_M,

@@ -5,7 +5,8 @@ from dataclasses import replace
 import pytest
 from conftest import load_bench
 
-from felis.learning.landing import train as lt
+from felis.learning.landing import task as lk
+from felis.learning.landing.samples import STEPS
 
 
 @pytest.fixture(scope="module")
@@ -15,7 +16,7 @@ def bench():
 
 def test_landing_speed_parts(bench):
     task, jobs = bench.setup(1)
-    assert task.k == 7 and task.steps == lt.STEPS and len(jobs) == task.k
+    assert task.k == 7 and task.steps == STEPS and len(jobs) == task.k
     # two orientations, 20 ticks: the same code paths in a few seconds
     task = replace(task, orientations=task.orientations[:2], heights_m=task.heights_m[:2], steps=20,
                    sf=task.sf[:2], tf=task.tf[:2])
@@ -28,4 +29,4 @@ def test_landing_speed_parts(bench):
     pool = bench.pool_speedup(task, jobs, repeats=1)
     assert pool["identical_results"] is True
     assert pool["jobs_per_map"] == 2 and pool["speedup"] > 0 and isinstance(pool["met"], bool)
-    assert lt._WORKER is None  # both parts release this process's simulation
+    assert lk._WORKER is None  # both parts release this process's simulation

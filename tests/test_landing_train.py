@@ -18,10 +18,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from felis.errors import ParameterError
+from felis.errors import CheckpointError, ParameterError
 from felis.learning.common.evaluator import Evaluator, ProcessPoolEvaluator, make_evaluator
+from felis.learning.landing import breeding as lb
+from felis.learning.landing import task as lk
 from felis.learning.landing import train as lt
-from felis.learning.landing.nets import ComplexBehaviour, load_policy, random_simple
+from felis.learning.landing.nets import random_simple
+from felis.learning.landing.policy import ComplexBehaviour, load_policy
 
 STEPS = 40  # 0.4 s: a drop from 0.6 m lands after about 0.3 s
 HEIGHT = 0.6
@@ -54,7 +57,7 @@ def samples():
     try:
         out = []
         for o in ORIENTATIONS:
-            r = lt._rollout(sim, o, spine_rule, HEIGHT, STEPS)
+            r = lk._rollout(sim, o, spine_rule, HEIGHT, STEPS)
             out.append(FakeSample(o, HEIGHT, r.vectors, r.heights_mm, r.final_up_z))
         return out
     finally:
@@ -191,27 +194,27 @@ def test_bad_orientation_index_and_output_name(tmp_path, samples):
 
 # --------------------------------------------------------------------------------------- pieces
 def test_score_of_the_sample_itself_has_zero_distance(samples):
-    task, idx = lt.make_task(TINY, samples)
+    task, idx = lk.make_task(TINY, samples)
     assert idx == [0, 1] and task.orientations == ORIENTATIONS[:2]
     s = samples[1]
-    marks = lt.score(task, 1, lt.Rollout(s.vectors, s.heights_mm, s.final_up_z))
+    marks = lk.score(task, 1, lk.Rollout(s.vectors, s.heights_mm, s.final_up_z))
     assert marks.shape == (5,) and marks[1] == 0.0 and marks[2] == 0.0 and marks[3] == s.final_up_z
-    assert marks[4] == 0.0 and lt.score(task, 1, lt.Rollout(s.vectors, s.heights_mm, 1.0, landed=True))[4] == 1.0
-    diverged = lt.score(task, 0, lt.Rollout(s.vectors[:3], s.heights_mm[:3], float("nan"), complete=False))
-    assert diverged.tolist() == [0.0, lt.DIVERGED, lt.DIVERGED, -1.0, 0.0]
+    assert marks[4] == 0.0 and lk.score(task, 1, lk.Rollout(s.vectors, s.heights_mm, 1.0, landed=True))[4] == 1.0
+    diverged = lk.score(task, 0, lk.Rollout(s.vectors[:3], s.heights_mm[:3], float("nan"), complete=False))
+    assert diverged.tolist() == [0.0, lk.DIVERGED, lk.DIVERGED, -1.0, 0.0]
 
 
 def test_rollouts_repeat_on_a_reused_sim(samples):
     """Workers reuse one sim for many rollouts: a rollout must not depend on what ran before."""
     from felis.learning.landing.evaluate import LandingSim
 
-    task, _ = lt.make_task(TINY, samples)
+    task, _ = lk.make_task(TINY, samples)
     b = random_simple(np.random.default_rng(5))
     sim = LandingSim()
     try:
-        first = lt.score(task, 0, lt.run_rollout(sim, task, b, 0))
-        lt.run_rollout(sim, task, random_simple(np.random.default_rng(6)), 1)
-        again = lt.score(task, 0, lt.run_rollout(sim, task, b, 0))
+        first = lk.score(task, 0, lk.run_rollout(sim, task, b, 0))
+        lk.run_rollout(sim, task, random_simple(np.random.default_rng(6)), 1)
+        again = lk.score(task, 0, lk.run_rollout(sim, task, b, 0))
     finally:
         sim.close()
     assert np.array_equal(first, again)
@@ -225,14 +228,14 @@ def test_short_rollout_matches_the_samples_rollout_at_full_length():
     b = random_simple(np.random.default_rng(2))
     sim = LandingSim()
     try:
-        ours = lt._rollout(sim, (135.0, 0.0, 0.0), b, 1.0, landing_samples.STEPS)
+        ours = lk._rollout(sim, (135.0, 0.0, 0.0), b, 1.0, landing_samples.STEPS)
         theirs = landing_samples.rollout(sim, (135.0, 0.0, 0.0), b, 1.0)
-        task = replace(lt.make_task(TINY, [FakeSample((135.0, 0.0, 0.0), 1.0, theirs.vectors, theirs.heights_mm,
+        task = replace(lk.make_task(TINY, [FakeSample((135.0, 0.0, 0.0), 1.0, theirs.vectors, theirs.heights_mm,
                                                       theirs.final_up_z)] * 2)[0], steps=landing_samples.STEPS)
-        via_task = lt.run_rollout(sim, task, b, 0)
+        via_task = lk.run_rollout(sim, task, b, 0)
     finally:
         sim.close()
-    assert ours.complete and lt.STEPS == landing_samples.STEPS
+    assert ours.complete and lt.TrainConfig().steps == landing_samples.STEPS
     for r in (ours, via_task):
         assert np.array_equal(r.vectors, theirs.vectors) and np.array_equal(r.heights_mm, theirs.heights_mm)
         assert r.final_up_z == theirs.final_up_z and r.landed == theirs.landed
@@ -246,9 +249,9 @@ def test_missing_samples_file_is_one_line(tmp_path):
 
 def test_f_only_ranking_ignores_similarity():
     marks = np.array([[1.0, 50.0, 9.0, 1.0, 0.0], [1.0, 10.0, 9.0, 1.0, 0.0], [2.0, 99.0, 9.0, 1.0, 0.0]])
-    order, _ = lt.rank_marks(marks, use_similarity=True)
+    order, _ = lb.rank_marks(marks, use_similarity=True)
     assert order.tolist() == [2, 1, 0]
-    order, score = lt.rank_marks(marks, use_similarity=False)
+    order, score = lb.rank_marks(marks, use_similarity=False)
     assert order.tolist() == [2, 0, 1] and score[0] == score[1]  # f ties: index order
 
 
@@ -257,8 +260,8 @@ def test_next_generation_keeps_the_best_first_and_the_size():
     rng = np.random.default_rng(0)
     pop = [random_simple(rng) for _ in range(10)]
     marks = np.column_stack((np.arange(10.0), np.zeros(10), np.zeros(10)))
-    order, score = lt.rank_marks(marks, True)
-    new = lt.breed_simple(pop, order, score, cfg, rng)
+    order, score = lb.rank_marks(marks, True)
+    new = lb.breed_simple(pop, order, score, cfg, rng)
     assert len(new) == 10
     assert new[0] is pop[9] and new[1] is pop[8]  # elites unchanged, best first
     assert all(b not in pop[:3] for b in new)  # the three worst were eliminated (and are no parents)
@@ -319,10 +322,10 @@ def test_resume_is_bit_identical(tmp_path, samples, stage, generation):
 def test_resume_refuses_other_settings_and_restarts_without_checkpoint(tmp_path, samples):
     with pytest.raises(_Stop):
         _train(tmp_path, samples, name="r", progress=_stop_at("simple", 1))
-    with pytest.raises(lt.CheckpointError, match="seed") as e:
+    with pytest.raises(CheckpointError, match="seed") as e:
         _train(tmp_path, samples, replace(TINY, seed=9), name="r", resume=True)
     assert "\n" not in str(e.value)
-    with pytest.raises(lt.CheckpointError, match="samples"):
+    with pytest.raises(CheckpointError, match="samples"):
         _train(tmp_path, samples[::-1], name="r", resume=True)
     _, res = _train(tmp_path, samples, replace(TINY, workers=2), name="r", resume=True)  # runtime settings may change
     assert res["run"]["resumed"]
@@ -341,7 +344,7 @@ def test_one_and_two_workers_give_identical_results(tmp_path, samples):
 def test_policy_file_loads_and_runs_in_the_landing_controller(tmp_path, samples):
     from felis.controllers.landing import LandingController
     from felis.learning.landing.evaluate import LandingSim
-    from felis.sim.drops import Drop
+    from felis.scenarios.drop import Drop
 
     out, res = _train(tmp_path, samples)
     policy, meta = load_policy(out)
@@ -353,8 +356,8 @@ def test_policy_file_loads_and_runs_in_the_landing_controller(tmp_path, samples)
         outcome = sim.run(Drop(180.0, 0.0, 0.0, HEIGHT), ctl, duration=0.5)
         assert ctl.held == 0 and outcome.why != "physics diverged"
         # the file's policy scores as the training's final entry did
-        task, _ = lt.make_task(TINY, samples)
-        marks = lt.score(task, 1, lt.run_rollout(sim, task, policy, 1))
+        task, _ = lk.make_task(TINY, samples)
+        marks = lk.score(task, 1, lk.run_rollout(sim, task, policy, 1))
     finally:
         sim.close()
     final = res["final"][1]
@@ -446,12 +449,12 @@ def test_landing_fitness_scores_each_clause_of_the_rule(samples):
     scores near the top, one dropped upside down near the bottom, and the score agrees with `landed`."""
     from felis.learning.landing.evaluate import LandingSim
 
-    task, _ = lt.make_task(replace(TINY, fitness="landing", steps=100), samples)
+    task, _ = lk.make_task(replace(TINY, fitness="landing", steps=100), samples)
     sim = LandingSim()
     try:
         still = lambda it, t: np.zeros(12)  # noqa: E731 - hold the release pose
-        up = lt.score(task, 0, lt.run_rollout(sim, task, still, 0))
-        down = lt.score(task, 1, lt.run_rollout(sim, task, still, 1))
+        up = lk.score(task, 0, lk.run_rollout(sim, task, still, 0))
+        down = lk.score(task, 1, lk.run_rollout(sim, task, still, 1))
     finally:
         sim.close()
     assert up[4] == 1.0 and up[0] > 4.9  # landed: every term full, + 1
@@ -476,7 +479,7 @@ def test_still_behaviour_holds_the_release_pose():
 
 
 def test_general_stage_trains_on_random_drops_and_ships_a_simple_behaviour(tmp_path, samples):
-    from felis.learning.landing.nets import SimpleBehaviour
+    from felis.learning.landing.policy import SimpleBehaviour
 
     seen = []
     out, res = _train(tmp_path, samples, GENERAL, progress=lambda *a: seen.append(a[:3]))
@@ -496,7 +499,7 @@ def test_general_stage_trains_on_random_drops_and_ships_a_simple_behaviour(tmp_p
 
 
 def test_one_net_mode_evolves_one_simple_behaviour_on_every_orientation(tmp_path, samples):
-    from felis.learning.landing.nets import SimpleBehaviour
+    from felis.learning.landing.policy import SimpleBehaviour
 
     cfg = replace(TINY, one_net=True, generations_simple=1, generations_complex=1)
     seen = []

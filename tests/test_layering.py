@@ -19,7 +19,7 @@ The rules, by layer (a module belongs to the most specific layer whose prefix it
     felis.sim                      felis core, felis.scenarios, felis.sim, felis.drivers.virtual
     felis.controllers              felis core, felis.scenarios, felis.controllers, the inference modules;
                                    no torch, mujoco or dynamixel_sdk
-    inference modules              felis core, numpy; no torch
+    inference modules              felis core, the other inference modules; numpy; no torch
     the rest of felis.learning     anything but felis.cli
     felis.calib                    felis core, felis.drivers, felis.sim, felis.calib
     felis.cli                      anything
@@ -41,8 +41,10 @@ SOURCES = {"felis.drivers": "drivers", "felis.sim": "sim", "felis.controllers": 
            "felis.learning": "learning", "felis.calib": "calib", "felis": "felis"}
 SUBPACKAGES = ("felis.cli", "felis.scenarios", "felis.logs", "felis.drivers", "felis.sim", "felis.controllers",
                "felis.learning", "felis.calib")
-INFERENCE = ("felis.learning.landing.policy", "felis.learning.ik.solver", "felis.learning.phase.estimator",
-             "felis.learning.balance.selector")
+# each skill's inference side: what controllers may import (numpy only; `infer` holds the nets' numpy forward
+# passes and weight readers that the solver and the estimator share with training)
+INFERENCE = ("felis.learning.landing.policy", "felis.learning.ik.solver", "felis.learning.ik.infer",
+             "felis.learning.phase.estimator", "felis.learning.phase.infer", "felis.learning.balance.selector")
 HEAVY = ("torch", "mujoco", "dynamixel_sdk", "ray", "matplotlib")
 
 
@@ -90,7 +92,7 @@ def allowed(module: str, imported: str) -> bool:
         "felis.drivers": ("felis.drivers",),
         "felis.sim": ("felis.sim", "felis.scenarios", "felis.drivers.virtual"),
         "felis.controllers": ("felis.controllers", "felis.scenarios", *INFERENCE),
-        "inference": (),
+        "inference": INFERENCE,
         "felis.calib": ("felis.calib", "felis.drivers", "felis.sim"),
     }[lay]
     # a package's __init__ is loaded whenever a submodule is: importing felis.learning.ik.solver loads
@@ -165,6 +167,7 @@ def test_the_layering_rules_catch_what_they_should():
     assert not allowed("felis.controllers.arm_track", "felis.learning.ik.data")
     assert not allowed("felis.controllers.pose", "torch")
     assert not allowed("felis.learning.ik.solver", "felis.learning.ik.net")
+    assert not allowed("felis.learning.ik.infer", "felis.controllers.arm_posture")
     assert not allowed("felis.learning.ik.solver", "torch")
     assert not allowed("felis.drivers.virtual.server", "felis.sim.robot")
     assert not allowed("felis.drivers.dynamixel.bus", "felis.scenarios")

@@ -11,15 +11,14 @@ import pytest
 import torch
 
 from felis.errors import ParameterError, PhaseError
+from felis.learning.phase.infer import PaeNumpy, load_pae_numpy, window_time
 from felis.learning.phase.pae import (
     PAE,
-    PaeNumpy,
     fft_params,
     fld_loss,
     fld_terms,
     latent_wave,
     load_pae,
-    load_pae_numpy,
     manifold,
     predict,
     predict_frames,
@@ -27,7 +26,6 @@ from felis.learning.phase.pae import (
     recon_loss,
     save_pae,
     torch_to_arrays,
-    window_time,
 )
 from felis.learning.phase.train import (
     PhaseTrainConfig,

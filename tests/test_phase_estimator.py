@@ -16,10 +16,11 @@ from felis.hal import State
 from felis.learning.phase.data import record_sim
 from felis.learning.phase.estimator import DEFAULT_WEIGHTS, PhaseEstimator, calibrate, phase_track
 from felis.learning.phase.evaluate import gate_comparison, phase_metrics
-from felis.learning.phase.pae import load_pae_numpy, save_pae
+from felis.learning.phase.infer import load_pae_numpy
+from felis.learning.phase.pae import save_pae
 from felis.learning.phase.train import PhaseTrainConfig, train_phase
+from felis.scenarios.push import Push
 from felis.sim.bodymodel import load_body_model
-from felis.sim.pushes import Push
 from felis.spec import load_spec
 
 

@@ -14,7 +14,8 @@ from test_cli import felis, ok, tree
 from felis.errors import ParameterError, PhaseError
 from felis.learning.phase.data import record_sim, save_recordings
 from felis.learning.phase.estimator import DEFAULT_WEIGHTS, calibrate
-from felis.learning.phase.pae import PaeConfig, load_pae_numpy, model_from_config, save_pae
+from felis.learning.phase.infer import PaeConfig, load_pae_numpy
+from felis.learning.phase.pae import model_from_config, save_pae
 from felis.learning.phase.plot import DPI, WIDTH_IN, plot_phase, resample
 from felis.learning.phase.train import PhaseTrainConfig, train_phase
 

@@ -21,8 +21,9 @@ from mcap.writer import Writer
 
 from felis.errors import LogError
 from felis.hal import Command, Faults, Imu, State
-from felis.logs.plot import plot_log, tilt_deg
+from felis.logs.plot import plot_log
 from felis.logs.runlog import LogData, RunLog, log_info, read_log
+from felis.rotations import tilt_deg
 from felis.spec import load_spec
 
 RATE = 100.0

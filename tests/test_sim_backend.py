@@ -9,11 +9,13 @@ import pytest
 from felis.controllers import PoseController
 from felis.errors import LifecycleError, ParameterError, SimulationError
 from felis.hal import Command, Lifecycle, Robot
+from felis.learning.landing.evaluate import standing_waist_height
 from felis.loop import run_loop
+from felis.rotations import euler_quat, quat_euler
 from felis.servos import RAD_PER_TICK, SERVOS
 from felis.sim import ModelMismatch, MujocoRobot
-from felis.sim.landing import ImpactRecorder, assess_landing
-from felis.sim.scenarios import drop, euler_quat, lowest_point, push, quat_euler, set_pose
+from felis.sim.landing import ImpactRecorder, LandingRecorder, assess_landing
+from felis.sim.scenarios import drop, lowest_point, push, set_pose
 from felis.sim.servo import kp_from_gain, servo_params
 from felis.spec import ROBOTS_DIR, load_spec, parse_spec
 
@@ -102,22 +104,29 @@ def test_free_fall_time(cat, h):
     assert rec.impact_speed == pytest.approx(G * expected, rel=0.02)
 
 
-def test_hard_landing_from_3m_stays_sane(cat):
+@pytest.fixture(scope="module")
+def standing_waist():
+    with MujocoRobot(CAT) as robot:
+        return standing_waist_height(robot)
+
+
+def test_hard_landing_from_3m_stays_sane(cat, standing_waist):
     drop(cat, 3.0, roll=180)
-    rec = ImpactRecorder(cat).attach()
+    rec = LandingRecorder(cat, tuple(CAT.sensors.contacts)).attach()
     report = run_loop(cat, PoseController("stand"), duration=2.0)
-    landing = assess_landing(cat, rec)
+    landing = assess_landing(cat, rec, standing_waist)
     assert report.ok and np.all(np.isfinite(cat.data.qpos))
     assert landing.impact_speed_ms == pytest.approx(7.67, rel=0.02)
     assert landing.torso_contact and not landing.on_feet  # the stand controller cannot right it
     assert lowest_point(cat.model, cat.data, cat.root_body) > -0.02
 
 
-def test_upright_drop_lands_on_feet(cat):
+def test_upright_drop_lands_on_feet(cat, standing_waist):
     drop(cat, 0.3)
+    rec = LandingRecorder(cat, tuple(CAT.sensors.contacts)).attach()
     run_loop(cat, PoseController("stand"), duration=1.5)
-    landing = assess_landing(cat)
-    assert landing.on_feet and landing.feet_down == 4 and landing.tilt_deg < 10
+    landing = assess_landing(cat, rec, standing_waist)
+    assert landing.on_feet and landing.why is None and landing.feet_down == 4 and landing.tilt_deg < 10
 
 
 def test_servo_gain_mapping():

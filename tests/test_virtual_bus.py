@@ -41,18 +41,17 @@ from hypothesis import strategies as st
 
 from felis.drivers.dynamixel import protocol as P
 from felis.drivers.virtual import (
-    Faults,
     Mount,
     VirtualBus,
     VirtualServo,
     client_baud,
     dispatch,
-    parse_faults,
     spawn,
     status_packet,
 )
 from felis.errors import CommError, ParameterError
 from felis.servos import RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, SERVOS
+from felis.sim.servo_in_loop import virtual_bus
 
 BAUD = 1_000_000
 XL330, XM430, XL430 = "XL330-M288-T", "XM430-W350-T", "XL430-W250-T"
@@ -488,17 +487,6 @@ def test_xl430_reports_load():
 
 
 # ------------------------------------------------------------------------------------------- faults
-def test_parse_faults():
-    f = parse_faults("drop=0.01,corrupt=0.001,delay_ms=5,remove=3,hwerror=5:overload,close_after=2.5,seed=0")
-    assert f == Faults(drop=0.01, corrupt=0.001, delay_ms=5, remove=(3,), hwerror={5: 0x20}, close_after=2.5, seed=0)
-    f = parse_faults("remove=3+4, remove=9, hwerror=5:overload+overheating, hwerror=6:0x01")
-    assert f.remove == (3, 4, 9) and f.hwerror == {5: 0x24, 6: 0x01}
-    assert parse_faults("") == Faults()
-    for spec, key in (("dorp=0.1", "dorp"), ("drop=2", "drop"), ("delay_ms=x", "delay_ms"), ("remove=300", "remove"),
-                      ("hwerror=5", "hwerror"), ("hwerror=5:gremlins", "gremlins"), ("seed", "seed")):
-        with pytest.raises(ParameterError, match=key) as e:
-            parse_faults(spec)
-        assert "\n" not in str(e.value)
 
 
 def test_drop_corrupt_and_delay(bus, sdk):
@@ -668,7 +656,7 @@ def test_for_robot_builds_the_servos():
 
 
 def test_for_robot_sim_moves_the_simulated_joints():
-    with VirtualBus.for_robot("cat", sim=True) as b:
+    with virtual_bus("cat", sim=True) as b:
         assert b.imu_port is not None and os.path.exists(b.imu_port)
         port = PortHandler(b.port)
         port.openPort()
@@ -695,7 +683,7 @@ def test_for_robot_sim_moves_the_simulated_joints():
             if all(abs(present[i] - q) < 0.08 for i, q in target.items()) or time.monotonic() > deadline:
                 break
         with b.lock:
-            state = b.sim.robot.read()
+            state = b.backend.robot.read()
         assert state.t > 0.05  # the simulation ran
         for i, q in target.items():
             assert present[i] == pytest.approx(q, abs=0.08), (i, present[i])

@@ -14,9 +14,10 @@ from felis.drivers.dynamixel import protocol as P
 from felis.drivers.dynamixel.bus import DynamixelBus
 from felis.drivers.dynamixel.controltable import control_table
 from felis.drivers.dynamixel.robot import TICK_ITEMS, DynamixelRobot
-from felis.drivers.virtual import VirtualBus, VirtualServo, parse_faults
+from felis.drivers.virtual import VirtualBus, VirtualServo
 from felis.errors import ParameterError
 from felis.hal import Command
+from felis.sim.servo_in_loop import virtual_bus
 from felis.spec import load_spec
 
 BAUD = 1_000_000
@@ -155,7 +156,7 @@ def test_a_silent_host_stops_the_simulated_robot_within_the_watchdog_time():
     """Servo-in-the-loop: a client arms the cat and commands a move, then goes silent; every servo's Bus
     Watchdog trips within 100 ms (+ one simulation iteration) of its last packet and the joints stop."""
     spec = load_spec("cat")
-    with VirtualBus.for_robot(spec, baud=BAUD, sim=True) as vb:
+    with virtual_bus(spec, baud=BAUD, sim=True) as vb:
         with DynamixelRobot(spec, vb.port, BAUD, bus_watchdog_s=0.1) as robot:
             robot.arm()
             q = robot.read().q
@@ -179,15 +180,6 @@ def test_a_silent_host_stops_the_simulated_robot_within_the_watchdog_time():
 
 
 # --------------------------------------------------------------------------------- timed faults
-def test_timed_fault_spec():
-    f = parse_faults("reboot=3@1.5,reboot=5@2,torque_off=7@0.25")
-    assert f.reboot == ((3, 1.5), (5, 2.0)) and f.torque_off == ((7, 0.25),)
-    for bad in ("reboot=3", "reboot=3@-1", "reboot=300@1", "torque_off=x@1", "reboot=3@nan"):
-        with pytest.raises(ParameterError, match="fault spec") as e:
-            parse_faults(bad)
-        assert "\n" not in str(e.value)
-
-
 def test_timed_faults_act_after_torque_first_came_on():
     with VirtualBus.for_robot("cat", baud=BAUD, faults="torque_off=2@0.2,reboot=4@0.2") as vb:
         with vb.lock:

@@ -54,6 +54,7 @@ from felis.drivers.dynamixel.controltable import (
     FAST_SYNC_READ_MIN_FIRMWARE,
     ControlTable,
     Item,
+    address,
     control_table,
     decode_hardware_error,
     model_name,
@@ -68,8 +69,9 @@ from felis.errors import (
 )
 
 SDK_BAUDS = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)  # both SDK and servo support
-_TORQUE_ENABLE = 64
-_HW_ERROR = 70
+_TORQUE_ENABLE = address("torque_enable")
+_HW_ERROR = address("hardware_error_status")
+_LED = address("led")
 
 
 
@@ -629,7 +631,7 @@ class DynamixelBus:
         self.sync_write(_TORQUE_ENABLE, 1, {i: bytes((1 if on else 0,)) for i in ids})
 
     def led(self, dxl_id: int, on: bool) -> None:
-        self.write_raw(dxl_id, 65, bytes((1 if on else 0,)), "write led")
+        self.write_raw(dxl_id, _LED, bytes((1 if on else 0,)), "write led")
 
     def reboot(self, dxl_id: int) -> None:
         """REBOOT: clears a hardware-error shutdown; torque comes back off."""

@@ -279,8 +279,34 @@ CONTROL_TABLES: dict[str, ControlTable] = {
 }
 _BY_NUMBER = {t.model_number: t for t in CONTROL_TABLES.values()}
 
+
+
+def shared_item(*names: str) -> Item:
+    """The item that every model here has at one address and size, under one of ``names`` (alternatives: the
+    XL430 has Present Load where the others have Present Current). Code that addresses servos without
+    knowing their model (group reads and writes, the emulator's hot path) takes addresses from here, by
+    name, rather than as numbers. ParameterError if no model has it or the models disagree."""
+    found = [t.items[n] for t in CONTROL_TABLES.values() for n in names if n in t.items]
+    if not found or len({(it.addr, it.size) for it in found}) != 1:
+        raise ParameterError(f"control-table item {' / '.join(names)} is not at one address in every model")
+    return found[0]
+
+
+def address(*names: str) -> int:
+    """Address of a `shared_item`."""
+    return shared_item(*names).addr
+
+
+def span(first: str | tuple[str, ...], last: str | tuple[str, ...]) -> tuple[int, int]:
+    """(address, length) of the contiguous block from item ``first`` through item ``last`` (`shared_item`
+    names; a tuple lists alternatives)."""
+    a = shared_item(*((first,) if isinstance(first, str) else first))
+    b = shared_item(*((last,) if isinstance(last, str) else last))
+    return a.addr, b.addr + b.size - a.addr
+
+
 # The block one sync read fetches each tick: present current/load, velocity, position.
-STATE_BLOCK = (126, 10)
+STATE_BLOCK = span(("present_current", "present_load"), "present_position")
 
 
 def control_table(model: str | int) -> ControlTable:

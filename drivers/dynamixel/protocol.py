@@ -97,10 +97,6 @@ def status(dxl_id: int, error: int, params: bytes | bytearray = b"") -> bytes:
     return _packet(dxl_id, bytes((STATUS, error & 0xFF)) + bytes(params))
 
 
-def u16(v: int) -> bytes:
-    return int(v).to_bytes(2, "little")
-
-
 @dataclass(frozen=True)
 class Packet:
     """A parsed packet: ``inst`` is the instruction (0x55 for status); ``params`` are unstuffed.

@@ -49,21 +49,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from felis.drivers.dynamixel.bus import CorruptReplyError, DynamixelBus, NoReplyError, ServoStatusError
-from felis.drivers.dynamixel.controltable import STATE_BLOCK, control_table
+from felis.drivers.dynamixel.controltable import STATE_BLOCK, address, control_table, span
 from felis.drivers.imu import apply_mounting
 from felis.errors import CalibrationError, CommError, DescriptionError
 from felis.hal import Command, Faults, Imu, RobotBase, State
 from felis.servos import RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, STALL_CURRENT_A, hardware_error_names, servo_model
 from felis.spec import RobotSpec
 
-_GOAL_BLOCK = (112, 8)  # Profile Velocity (4) + Goal Position (4)
-_GOAL = (116, 4)  # Goal Position alone
-_TORQUE_ENABLE = 64
-_BUS_WATCHDOG = 98
-_HOMING_OFFSET = 20
+_GOAL_BLOCK = span("profile_velocity", "goal_position")  # Profile Velocity (4) + Goal Position (4)
+_GOAL = span("goal_position", "goal_position")  # Goal Position alone
+_TORQUE_ENABLE = address("torque_enable")
+_HW_ERROR = address("hardware_error_status")
+_BUS_WATCHDOG = address("bus_watchdog")
+_HOMING_OFFSET = address("homing_offset")
+_OPERATING_MODE = address("operating_mode")
 _BLOCK_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 # what one tick reads per servo, gathered by Indirect Addressing: addresses in order, then the layout
-TICK_ITEMS = (_TORQUE_ENABLE, 70, _BUS_WATCHDOG, *range(STATE_BLOCK[0], STATE_BLOCK[0] + STATE_BLOCK[1]))
+TICK_ITEMS = (_TORQUE_ENABLE, _HW_ERROR, _BUS_WATCHDOG, *range(STATE_BLOCK[0], STATE_BLOCK[0] + STATE_BLOCK[1]))
 _TICK_DTYPE = np.dtype([("torque", "u1"), ("hw", "u1"), ("watchdog", "u1"), ("current", "<i2"),
                         ("velocity", "<i4"), ("position", "<i4")])
 BUS_WATCHDOG_S = 0.1  # the deadman: servos stop this long after the host's last packet
@@ -187,7 +189,7 @@ class DynamixelRobot(RobotBase):
                             f"{bus.port_name}: {', '.join(missing)}; check power and cabling, or `felis scan`")
         if wrong:
             raise DescriptionError(self.spec.source, "servo", "; ".join(wrong))
-        modes = bus.sync_read(self.ids, 11, 1, fast=False, retries=2)
+        modes = bus.sync_read(self.ids, _OPERATING_MODE, 1, fast=False, retries=2)
         not_position = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints
                         if modes.data[j.servo_id] is not None and modes.data[j.servo_id][0] != 3]
         if not_position:

@@ -7,24 +7,23 @@ push; ``--reaction none|fixed:NAME|selector`` chooses what the cat does when the
 ``--backend dxl --port virtual`` runs each push through the whole hardware path (virtual Dynamixel bus
 backed by MuJoCo, wall clock). ``felis train balance`` makes the demonstrations (every push that calls
 for a reaction, tried with every strategy), fits the denoised kNN selector and an SVM beside it, and
-writes the selector (.npz), its demonstrations and a results JSON.
+writes the selector (.npz), its demonstrations and a results JSON (`felis.learning.balance.train`).
 """
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
-from felis.cli.output import check_json_out, emit
-from felis.cli.output import progress as _progress
+from felis.cli import output
+from felis.drivers import ports
 from felis.errors import ParameterError
 
 DEFAULT_TRAIN_OUT = Path("runs/train-balance/balance_selector.npz")
-TOL = 0.05  # selector accuracy: a strategy whose score is within this of the best counts as the best
 
 
-def register(train_sub, eval_sub, parser_class) -> None:
+def register_eval(eval_sub) -> None:
+    """Add ``felis eval balance``."""
     e = eval_sub.add_parser("balance", help="push the cat: the balance monitor's recall, false alarms and lead "
                             "time, and the fall rate with a protective reaction")
     e.add_argument("--pushes", required=True, metavar="FILE|random:N",
@@ -43,6 +42,9 @@ def register(train_sub, eval_sub, parser_class) -> None:
     e.add_argument("--json", action="store_true", help="print the result as JSON")
     e.set_defaults(func=cmd_eval_balance)
 
+
+def register_train(train_sub) -> None:
+    """Add ``felis train balance``."""
     t = train_sub.add_parser("balance", help="make push demonstrations and fit the reactive-strategy selector "
                              "(denoised kNN; SVM beside it)")
     t.add_argument("--pushes", default="random:1200", metavar="FILE|random:N",
@@ -71,7 +73,7 @@ def _reaction(text: str) -> str:
 
 def cmd_eval_balance(args) -> int:
     from felis.learning.balance.evaluate import run_push_virtual, run_pushes, summarise
-    from felis.sim.pushes import pushes_from
+    from felis.scenarios.push import pushes_from
 
     pushes = pushes_from(args.pushes, args.seed)
     reaction = _reaction(args.reaction)
@@ -79,10 +81,10 @@ def cmd_eval_balance(args) -> int:
         raise ParameterError("--selector needs --reaction selector")
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
-    check_json_out(args.out)
+    output.check_json_out(args.out)
     quiet = args.json or not sys.stderr.isatty()
     if args.backend == "dxl":
-        if args.port != "virtual":
+        if not ports.is_virtual(args.port):
             raise ParameterError("eval balance --backend dxl needs --port virtual: the pushes and the ground truth "
                                  "act on the virtual bus's simulated cat")
         react = reaction
@@ -91,7 +93,7 @@ def cmd_eval_balance(args) -> int:
             from felis.learning.balance.selector import load_selector
 
             react = load_selector(args.selector, feature_names=FEATURES)
-        bar, step = _progress(len(pushes), "pushes (virtual bus, wall clock)", quiet)
+        bar, step = output.progress(len(pushes), "pushes (virtual bus, wall clock)", quiet)
         with bar:
             outcomes = []
             for p in pushes:
@@ -100,14 +102,14 @@ def cmd_eval_balance(args) -> int:
                 outcomes.append(o)
                 step(1)
     else:
-        bar, step = _progress(len(pushes), "pushes", quiet)
+        bar, step = output.progress(len(pushes), "pushes", quiet)
         with bar:
             outcomes = run_pushes(pushes, reaction, selector=None if args.selector is None else str(args.selector),
                                   workers=args.workers, progress=step)
     res = {**summarise(outcomes), "reaction": args.reaction, "backend": args.backend,
            "pushes_source": args.pushes, "seed": args.seed, "pushes": [o.as_dict() for o in outcomes]}
     res = {k: res[k] for k in ("recall", "false_alarm_rate", "median_lead_s", "fall_rate", *res)}  # headline first
-    return emit(args, res, _print_summary)
+    return output.emit(args, res, _print_summary)
 
 
 def _print_summary(r: dict) -> None:
@@ -127,84 +129,27 @@ def _print_summary(r: dict) -> None:
 def cmd_train_balance(args) -> int:
     import time
 
-    import numpy as np
-
-    from felis.controllers.reactions import FEATURES, REACTIONS
-    from felis.files import check_target, prepare_parent, write_atomic
-    from felis.learning.balance.evaluate import demonstrate
-    from felis.learning.balance.selector import (
-        CaseBase,
-        KnnSelector,
-        SvmSelector,
-        accuracy,
-        exact_accuracy,
-        recovery_accuracy,
-    )
-    from felis.sim.pushes import pushes_from
+    from felis.controllers.reactions import REACTIONS
+    from felis.learning.balance.evaluate import demonstrate  # late: MuJoCo rollouts
+    from felis.learning.balance.train import TOL, check_outputs, fit_selector, read_demos
+    from felis.scenarios.push import pushes_from
 
     out = Path(args.out)
-    if out.suffix.lower() != ".npz":
-        raise ParameterError(f"{out}: the selector file must end in .npz")
-    if not 0.05 <= args.holdout <= 0.9:
-        raise ParameterError(f"--holdout must be within 0.05…0.9, got {args.holdout}")
-    check_target(out, "selector", ParameterError)
-    demos_out = out.with_suffix(".demos.npz")
+    check_outputs(out, args.holdout)
     t0 = time.perf_counter()
     if args.demos is not None:
-        X, S, source = _read_demos(args.demos)
+        X, S, source = read_demos(args.demos)
     else:
         pushes = pushes_from(args.pushes, args.seed)
         quiet = args.json or not sys.stderr.isatty()
-        bar, step = _progress(len(pushes) * len(REACTIONS), "demonstration runs (at most)", quiet,
-                              lines=quiet and not args.json)
+        bar, step = output.progress(len(pushes) * len(REACTIONS), "demonstration runs (at most)", quiet,
+                                    lines=quiet and not args.json)
         with bar:
             X, S, used = demonstrate(pushes, workers=args.workers, progress=step)
         source = args.pushes
-    cases = CaseBase(X, S, FEATURES, REACTIONS)
-    if len(cases) < 20:
-        raise ParameterError(f"only {len(cases)} pushes called for a reaction: too few demonstrations "
-                             "(use more pushes)")
-    train, held = cases.split(1.0 - args.holdout, args.seed)
-    knn = KnnSelector(k=args.k, power=2.0, interpolate="scores").fit(train)
-    variants = {"knn": knn,
-                "knn_no_denoise": KnnSelector(k=args.k, power=2.0, interpolate="scores", denoise=False).fit(train),
-                "knn_labels": KnnSelector(k=args.k).fit(train), "svm": SvmSelector().fit(train)}
-    labels = cases.labels()
-    common = int(np.bincount(train.labels(), minlength=len(REACTIONS)).argmax())
-    fixed = {f"always_{name}": i for i, name in enumerate(REACTIONS)}
-
-    def fixed_rates(metric):
-        return {k: round(metric(i), 4) for k, i in fixed.items()}
-
-    res = {
-        "demonstrations": len(cases), "train": len(train), "held_out": len(held), "pushes": source,
-        "seed": args.seed, "tolerance": TOL, "features": list(FEATURES), "strategies": list(REACTIONS),
-        "best_strategy_counts": {name: int((labels == i).sum()) for i, name in enumerate(REACTIONS)},
-        "most_common_best": REACTIONS[common],
-        "kept_after_denoise": int(knn.kept.sum()),
-        "held_out_recovery_accuracy": {
-            **{k: round(recovery_accuracy(v, held), 4) for k, v in variants.items()},
-            **fixed_rates(lambda i: float(np.mean((held.scores[:, i] < 1) | (held.scores.min(axis=1) >= 1))))},
-        "held_out_accuracy": {
-            **{k: round(accuracy(v, held, TOL), 4) for k, v in variants.items()},
-            **fixed_rates(lambda i: float(held.acceptable(TOL)[:, i].mean()))},
-        "held_out_accuracy_tol_0.1": {k: round(accuracy(v, held, 0.1), 4) for k, v in variants.items()},
-        "held_out_exact_accuracy": {k: round(exact_accuracy(v, held), 4) for k, v in variants.items()},
-        "held_out_fall_fraction": {
-            **{k: round(float(np.mean(held.scores[np.arange(len(held)), v.predict_index(held.features)] >= 1)), 4)
-               for k, v in variants.items()},
-            "best_possible": round(float(np.mean(held.scores.min(axis=1) >= 1)), 4),
-            **fixed_rates(lambda i: float(np.mean(held.scores[:, i] >= 1)))},
-        "selector": str(out), "time_s": round(time.perf_counter() - t0, 1),
-    }
-    prepare_parent(out, "selector", ParameterError)
-    knn.save(out)
-    if args.demos is None:
-        write_atomic(demos_out, _demos_bytes(X, S, source), "demonstrations", ParameterError)
-    res["demonstrations_file"] = str(demos_out if args.demos is None else args.demos)
-    write_atomic(out.with_suffix(".results.json"), json.dumps(res, indent=1) + "\n", "results", ParameterError)
+    res = fit_selector(X, S, source, out, seed=args.seed, holdout=args.holdout, k=args.k, demos=args.demos, t0=t0)
     if args.json:
-        print(json.dumps(res, indent=1))
+        output.print_json(res)
         return 0
     rec, acc, falls = res["held_out_recovery_accuracy"], res["held_out_accuracy"], res["held_out_fall_fraction"]
     print(f"{res['demonstrations']} demonstrations (best strategy: "
@@ -216,111 +161,3 @@ def cmd_train_balance(args) -> int:
           f"falls: kNN {falls['knn']:.3f}, SVM {falls['svm']:.3f}, best possible {falls['best_possible']:.3f}")
     print(f"selector: {out}; results: {out.with_suffix('.results.json')}")
     return 0
-
-
-def _demos_bytes(X, S, source: str) -> bytes:
-    import io
-
-    import numpy as np
-
-    buf = io.BytesIO()
-    np.savez(buf, features=X, scores=S, source=np.array(source))
-    return buf.getvalue()
-
-
-def _read_demos(path: Path):
-    import numpy as np
-
-    from felis.controllers.reactions import FEATURES, REACTIONS
-    from felis.files import MAX_ARRAY_BYTES, check_readable
-
-    check_readable(path, "demonstrations file", ParameterError, MAX_ARRAY_BYTES)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            X, S, source = z["features"], z["scores"], str(z["source"])
-    except FileNotFoundError:
-        raise ParameterError(f"{path}: no such demonstrations file") from None
-    except (OSError, ValueError, KeyError) as e:
-        raise ParameterError(f"{path}: not a demonstrations file ({type(e).__name__}: {e})") from None
-    if X.ndim != 2 or X.shape[1] != len(FEATURES) or S.shape != (len(X), len(REACTIONS)):
-        raise ParameterError(f"{path}: demonstrations have shape {X.shape}/{S.shape}, expected (n, {len(FEATURES)})"
-                             f"/(n, {len(REACTIONS)})")
-    return X, S, source
-
-
-DEMO_PUSH = {"body": "upper_body", "direction_deg": 90.0, "impulse_ns": 0.6, "t_s": 0.8, "phase": "stand"}
-
-
-def push_demo(run_dir: Path, video: bool = True) -> dict:
-    """``felis demo`` part 4: the standing cat pushed sideways, once without a reaction and once with the
-    shipped strategy selector; the margin of stability with the warning and the alarm, to PNG; the
-    selector's run to MP4."""
-    from felis.learning.balance.evaluate import PushSim
-    from felis.sim.pushes import check_push
-
-    p = check_push(DEMO_PUSH, "demo push")
-    sim = PushSim()
-    runs = {}
-    try:
-        runs["none"] = sim.run(p, "none", trace=True)
-        recorder = []
-        if video:
-            from felis.sim.render import VideoRecorder
-
-            recorder = [VideoRecorder(sim.robot, run_dir / "push.mp4", fps=30.0, width=640, height=480)]
-        from felis.controllers.reactions import FEATURES
-        from felis.learning.balance.selector import load_selector
-
-        try:
-            runs["selector"] = sim.run(p, load_selector(feature_names=FEATURES), trace=True, monitors=recorder)
-        except BaseException:
-            for r in recorder:
-                r.abort()
-            raise
-        files = {"plot": str(plot_margins(runs, p, run_dir / "push_margin.png", sim.monitor_defaults()))}
-        for r in recorder:
-            files["video"] = str(r.close())
-    finally:
-        sim.close()
-    summary = {"push": p.as_dict(), "files": files,
-               "runs": {k: {kk: v for kk, v in o.as_dict().items() if kk in ("fell", "why", "alarm_t_s", "lead_s",
-                                                                              "strategy", "max_tilt_deg")}
-                        for k, o in runs.items()}}
-    (run_dir / "push.json").write_text(json.dumps(summary, indent=1) + "\n")
-    return summary
-
-
-def plot_margins(runs: dict, p, path: Path, monitor: dict) -> Path:
-    """Margin of stability over time per run, with the alarm shaded, the push and any fall marked."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    fig, axes = plt.subplots(len(runs), 1, figsize=(8, 2.6 * len(runs)), sharex=True, squeeze=False)
-    for ax, (name, o) in zip(axes[:, 0], runs.items(), strict=True):
-        tr = o.margins
-        t, b, alarm = tr[:, 0], tr[:, 1] * 100, tr[:, 2] > 0
-        ax.plot(t, b, color="tab:blue", lw=1.5, label="margin of stability b")
-        ax.fill_between(t, np.nanmin(b) - 1, np.nanmax(b) + 1, where=alarm, color="tab:red", alpha=0.15,
-                        label="alarm", step="post")
-        ax.axhline(0, color="k", lw=0.8)
-        ax.axhline(monitor["warn_m"] * 100, color="tab:orange", lw=0.8, ls="--", label="warning level")
-        ax.axhline(-monitor["on_m"] * 100, color="tab:red", lw=0.8, ls="--", label="alarm level")
-        ax.axvline(p.t_s, color="tab:purple", lw=1, label="push")
-        if o.fell:
-            ax.axvline(o.fall_t, color="k", lw=1.5, ls=":", label=f"fell ({o.why})")
-        verdict = "fell" if o.fell else "stayed up"
-        what = "no reaction" if name == "none" else f"selector → {o.strategy}"
-        ax.set_title(f"{what}: {verdict}" + (f", alarm {o.lead_s * 1000:.0f} ms before the fall" if o.lead_s else ""),
-                     fontsize=10)
-        ax.set_ylabel("b (cm)")
-        ax.set_ylim(max(np.nanmin(b) - 1, -20), np.nanmax(b) + 1)
-        ax.legend(fontsize=7, loc="lower left", ncol=3)
-    axes[-1, 0].set_xlabel("time (s)")
-    fig.suptitle(f"cat pushed: {p.impulse_ns:g} N·s at {p.direction_deg:g}° on the {p.body}", fontsize=11)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

@@ -8,10 +8,13 @@ spawns a virtual bus for the robot) and prints.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
+from rich.table import Table
+
+from felis.cli import output
+from felis.cli.args import baud_rate, open_bus
 from felis.errors import CalibrationError, ParameterError
 
 
@@ -29,12 +32,8 @@ def _operator(args):
 
 
 def _emit(args, obj, human) -> None:
-    if args.json:
-        print(json.dumps(obj, indent=2, default=str))
-    else:
-        from rich.console import Console
-
-        Console(highlight=False, soft_wrap=True).print(human)
+    """JSON with --json, else ``human`` through the console (text with markup, or a table)."""
+    output.out(args, obj, human, rich=True)
 
 
 def _spec(args):
@@ -56,16 +55,13 @@ def _path(args, spec) -> Path:
 
 
 def _bus(args):
-    """The bus on ``--port``; ``virtual`` spawns one for ``--robot`` (backed by MuJoCo when the IMU is wanted)."""
-    from felis.cli.dxl import open_bus
-
+    """The bus on ``--port`` (`felis.drivers.ports.Ports`); ``virtual`` spawns one for ``--robot`` (backed by
+    MuJoCo when the IMU is wanted)."""
     args.robot = args.robot or "cat"
     return open_bus(args, sim=bool(getattr(args, "imu", False) or getattr(args, "imu_only", False)))
 
 
 def _diff_table(diffs, title: str, left: str, right: str):
-    from rich.table import Table
-
     t = Table(title=title)
     for col in ("joint", "ID", "item", left, right):
         t.add_column(col)
@@ -82,7 +78,8 @@ def cmd_setup_motors(args) -> int:
     select_joints(spec, args.motors)  # check names before touching the bus
     baud = args.baud
     args.baud = 57_600  # the bus starts at the factory rate; set-up searches every rate anyway
-    with _bus(args) as bus:
+    with _bus(args) as ports:
+        bus = ports.bus
         done = setup_motors(bus, spec, _operator(args), joints=args.motors, baud=baud)
     _emit(args, {"robot": spec.name, "motors": [d.as_dict() for d in done]},
           f"{len(done)} servo(s) set up: " + ", ".join(f"{d.joint} = ID {d.id}" for d in done))
@@ -102,25 +99,25 @@ def cmd_calibrate(args) -> int:
     select_joints(spec, args.joints)  # names checked before the bus opens
     op = _operator(args)
     out: dict = {"robot": spec.name, "robot_id": args.id, "file": str(path)}
-    with _bus(args) as bus:
+    with _bus(args) as ports:
+        bus = ports.bus
         if not args.imu_only:
             cal, written = calibrate(bus, spec, args.id, op, joints=args.joints, path=path, sweep=not args.no_sweep)
             out["joints"] = {n: {"offset": jc.offset, "range": list(jc.range)} for n, jc in cal.joints.items()
                              if args.joints is None or n in args.joints}
         if args.imu or args.imu_only:
-            out["imu"] = _calibrate_imu(args, spec, path, op)
+            out["imu"] = _calibrate_imu(args, spec, path, op, ports.imu_port)
     _emit(args, out, f"calibration of {spec.name} {args.id!r} saved to {path}")
     return 0
 
 
-def _calibrate_imu(args, spec, path: Path, op) -> dict:
+def _calibrate_imu(args, spec, path: Path, op, port: str | None) -> dict:
     from felis.calib.calfile import load, save
     from felis.calib.imu import estimate_mounting
     from felis.drivers.imu import ImuReader
 
     if spec.sensors.imu is None:
         raise ParameterError(f"the {spec.name} has no IMU in its description")
-    port = args.imu_port or getattr(args, "_imu_port", None)
     if not port:
         raise ParameterError("the IMU step needs --imu-port PATH (the BNO08x's UART-RVC serial port)")
     cal = load(path, spec)  # joints first: the IMU goes into a complete file
@@ -142,11 +139,8 @@ def cmd_cal_show(args) -> int:
     path = _path(args, spec)
     cal = load(path, spec, complete=False)
     if args.json:
-        print(json.dumps({"file": str(path), **cal.to_dict()}, indent=2))
+        output.print_json({"file": str(path), **cal.to_dict()})
         return 0
-    from rich.console import Console
-    from rich.table import Table
-
     t = Table(title=f"{cal.robot} {cal.robot_id!r}: {path} ({cal.created})")
     for col in ("joint", "ID", "model", "fw", "offset", "dir", "range (ticks)", "range (joint)"):
         t.add_column(col)
@@ -160,7 +154,7 @@ def cmd_cal_show(args) -> int:
         off_deg = horn_of_tick(2048 + jc.offset) * 57.29577951308232
         t.add_row(j.name, str(jc.id), jc.model, str(jc.firmware), f"{jc.offset:+d} ({off_deg:+.1f}°)",
                   f"{jc.direction:+d}", f"{jc.range[0]}…{jc.range[1]}", f"{lo * k:+.1f}…{hi * k:+.1f}{unit}")
-    c = Console(highlight=False, soft_wrap=True)
+    c = output.console()
     c.print(t)
     c.print(f"IMU: {cal.imu if cal.imu else 'not calibrated (felis calibrate --imu-only)'}")
     return 0
@@ -172,7 +166,8 @@ def cmd_cal_diff(args) -> int:
 
     spec = _spec(args)
     cal = load(_path(args, spec), spec, complete=False)
-    with _bus(args) as bus:
+    with _bus(args) as ports:
+        bus = ports.bus
         diffs = diff_calibration(bus, spec, cal)
     _emit(args, {"same": not diffs, "differences": [d.as_dict() for d in diffs]},
           "motors and file agree" if not diffs else _diff_table(diffs, "calibration: motors vs file", "motors",
@@ -188,7 +183,8 @@ def cmd_cal_apply(args) -> int:
     path = _path(args, spec)
     cal = load(path, spec, complete=False)
     op = _operator(args)
-    with _bus(args) as bus:
+    with _bus(args) as ports:
+        bus = ports.bus
         diffs = diff_calibration(bus, spec, cal)
         if not diffs:
             _emit(args, {"same": True, "applied": []}, "motors and file agree: nothing to apply")
@@ -211,7 +207,7 @@ def cmd_cal_export(args) -> int:
     path = _path(args, spec)
     cal = load(path, spec)
     if args.out == "-":
-        sys.stdout.write(json.dumps(cal.to_dict(), indent=2) + "\n")
+        output.print_json(cal.to_dict())
         return 0
     dst = copy_out(path, args.out)
     _emit(args, {"exported": str(dst)}, f"exported {path} → {dst}")
@@ -258,7 +254,8 @@ def cmd_check_eeprom(args) -> int:
         from felis.calib.calfile import load
 
         cal = load(_path(args, spec), spec)
-    with _bus(args) as bus:
+    with _bus(args) as ports:
+        bus = ports.bus
         diffs = eeprom_check(bus, spec, cal, _operator(args), show=not args.json)
     _emit(args, {"ok": not diffs, "differences": [d.as_dict() for d in diffs], "applied": bool(diffs)},
           "EEPROM settings as expected" if not diffs else f"applied {len(diffs)} setting(s)")
@@ -286,15 +283,14 @@ def eeprom_check(bus, spec, cal, op, *, show: bool = True) -> list:
 
 
 # ----------------------------------------------------------------------------- parser
-def register(sub, parser_class) -> None:
+def register(sub) -> None:
     """Add the calibration commands to the ``felis`` parser."""
-    from felis.cli.dxl import _baud
 
     def common(sp, *, bus: bool = True, need_id: bool = False):
         sp.add_argument("--robot", default="cat", help="robot name (cat, arm) or a description .toml (default cat)")
         if bus:
             sp.add_argument("--port", help="serial device, or 'virtual' for a virtual bus (default $FELIS_PORT)")
-            sp.add_argument("--baud", type=_baud, default=1_000_000, help="the robot's baud rate (default 1000000)")
+            sp.add_argument("--baud", type=baud_rate, default=1_000_000, help="the robot's baud rate (default 1000000)")
         sp.add_argument("--id", required=need_id, help="the robot's id: names its calibration file")
         sp.add_argument("--file", help="calibration file path (default: the config directory, by robot and id)")
         sp.add_argument("--yes", action="store_true", help="no prompts: answer yes and go on (for scripts)")
@@ -304,7 +300,7 @@ def register(sub, parser_class) -> None:
     sm.add_argument("--robot", default="cat", help="robot name (default cat)")
     sm.add_argument("--motors", type=_names, help="only these joints (comma-separated); default all")
     sm.add_argument("--port", help="serial device, or 'virtual' (default $FELIS_PORT)")
-    sm.add_argument("--baud", type=_baud, default=1_000_000, help="baud rate to set (default 1000000)")
+    sm.add_argument("--baud", type=baud_rate, default=1_000_000, help="baud rate to set (default 1000000)")
     sm.add_argument("--yes", action="store_true", help="no prompts (the servo is already the only one connected)")
     sm.add_argument("--json", action="store_true", help="print results as JSON")
     sm.set_defaults(func=cmd_setup_motors)
@@ -321,7 +317,7 @@ def register(sub, parser_class) -> None:
     ca.set_defaults(func=cmd_calibrate)
 
     cal = sub.add_parser("calibration", help="calibration files: show, diff, apply, export, import, list")
-    cs = cal.add_subparsers(dest="action", metavar="ACTION", parser_class=parser_class)
+    cs = cal.add_subparsers(dest="action", metavar="ACTION")
 
     def missing(_args) -> int:
         cal.print_usage(sys.stderr)

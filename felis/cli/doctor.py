@@ -15,6 +15,8 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from felis.cli import output
+
 OK, WARN, FAIL, INFO = "ok", "warn", "fail", "info"
 
 _GL_PROBE = ("import mujoco; m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\".1\"/>"
@@ -120,3 +122,25 @@ def run_checks() -> list[Check]:
 
 def as_json(checks: list[Check]) -> list[dict]:
     return [asdict(c) for c in checks]
+
+
+def register(sub) -> None:
+    """Add ``felis doctor``."""
+    d = sub.add_parser("doctor", help="check this machine: rendering, display, serial ports, latency timer")
+    d.add_argument("--json", action="store_true", help="print results as JSON")
+    d.set_defaults(func=cmd_doctor)
+
+
+def cmd_doctor(args) -> int:
+    checks = run_checks()
+    if args.json:
+        output.print_json(as_json(checks))
+    else:
+        console = output.console()
+        style = {"ok": "green", "warn": "yellow", "fail": "red", "info": "cyan"}
+        for c in checks:
+            line = f"[{style[c.status]}]{c.status:>4}[/]  {c.name}: {c.detail}"
+            if c.fix:
+                line += f"\n      fix: {c.fix}"
+            console.print(line)
+    return output.EXIT_ERROR if any(c.status == FAIL for c in checks) else 0

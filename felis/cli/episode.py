@@ -1,13 +1,19 @@
-"""One simulated run for the CLI: robot, scenario, controller, log, video, plot, summary.
+"""One run for the CLI, in MuJoCo or on Dynamixel servos: robot, scenario, controller, log, video, plot,
+summary.
 
-Used by ``felis sim drop``, ``felis sim render``, ``felis run`` and ``felis demo``. Every input is
-checked before any file is created, so bad input writes nothing; a video is written to a temporary
+`run_episode` is the one runner: it checks every input, opens the backend's robot (`_Sim`: MuJoCo
+directly; `_Dxl`: Dynamixel servos through `felis.drivers.ports`, a virtual bus for ``port="virtual"``),
+runs the loop with the progress, tilt, log (and video) monitors, writes the log's summary and the plot,
+and returns an `EpisodeResult`; the backends differ only in what they check, open and judge. Used by
+``felis sim drop``, ``felis sim render``, ``felis run`` and ``felis demo``. Every input is checked
+before any file is created, so bad input writes nothing; a video is written to a temporary
 file and moved into place at the end, the MCAP log is written incrementally.
 
 Drops (``Episode.drop`` = height m, roll°, pitch°, yaw°; `felis.sim.scenarios.drop`):
 
 * ``backend="sim"``: MuJoCo places the robot and the run ends with the landing judge
-  (`felis.sim.landing.assess_landing`: tilt, feet down, impact, peak force).
+  (`felis.sim.landing.assess_landing`: the landing verdict of `felis.scenarios.verdicts`, the same as
+  ``felis eval landing``'s, with tilt, feet down, impact, peak force).
 * ``backend="dxl"`` with ``port="virtual"``: the virtual bus's simulation holds the robot in the air
   (`felis.drivers.virtual`, ``--drop``) and releases it when torque first comes on, so the run goes
   through the whole hardware path. The result reports what that path can know: the drop and the final
@@ -19,17 +25,22 @@ Drops (``Episode.drop`` = height m, roll°, pitch°, yaw°; `felis.sim.scenarios
 
 from __future__ import annotations
 
+import contextlib
+import inspect
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from felis.controllers import make_controller
+from felis.controllers import CONTROLLERS, make_controller
+from felis.drivers.dynamixel.robot import DynamixelRobot
+from felis.drivers.ports import is_virtual, open_ports
 from felis.errors import ParameterError
 from felis.files import check_target
+from felis.logs.plot import plot_log
+from felis.logs.runlog import RunLog
 from felis.loop import LoopReport, run_loop
+from felis.rotations import tilt_deg
 from felis.spec import load_spec
-
-G = 9.81  # m/s², MuJoCo's default gravity (the models')
 
 
 @dataclass
@@ -88,15 +99,6 @@ class EpisodeResult:
         return out
 
 
-def tilt_deg(quat) -> float:
-    """Angle (degrees) between a body's up-axis and vertical, from its orientation quaternion (w, x, y, z):
-    up_z = 1 − 2(x² + y²) for a unit quaternion (normalised here)."""
-    w, x, y, z = (float(v) for v in quat)
-    n2 = w * w + x * x + y * y + z * z
-    up_z = 1.0 - 2.0 * (x * x + y * y) / n2
-    return math.degrees(math.acos(max(-1.0, min(1.0, up_z))))
-
-
 class _FinalTilt:
     """Loop monitor: the IMU's tilt at the last tick; None when that tick had no reading (a quiet sensor)."""
 
@@ -106,7 +108,7 @@ class _FinalTilt:
     def __call__(self, state, command) -> None:
         imu = state.imu
         ok = imu is not None and all(math.isfinite(float(v)) for v in imu.quat)
-        self.deg = tilt_deg(imu.quat) if ok else None
+        self.deg = float(tilt_deg(imu.quat)) if ok else None
 
 
 def _drop_meta(info) -> dict:
@@ -134,10 +136,6 @@ def _check(ep: Episode) -> None:
 def _controller(ep: Episode, spec):
     """The episode's controller; one that needs the robot's body model (the balance monitor) gets it
     from the MJCF here, the one place that wires simulation data into controllers."""
-    import inspect
-
-    from felis.controllers import CONTROLLERS
-
     options = dict(ep.controller_options)
     factory = CONTROLLERS.get(ep.controller)
     if factory is not None and "body" in inspect.signature(factory).parameters and "body" not in options:
@@ -148,73 +146,51 @@ def _controller(ep: Episode, spec):
 
 
 def run_episode(ep: Episode) -> EpisodeResult:
-    if ep.backend == "dxl":
-        return run_hardware(ep)
-    if ep.backend != "sim":
+    """Run ``ep`` on its backend; every input is checked before anything is created or written."""
+    if ep.backend not in ("sim", "dxl"):
         raise ParameterError(f"unknown backend {ep.backend!r}: use sim or dxl")
-    from felis.sim import MujocoRobot
-    from felis.sim.landing import ImpactRecorder, assess_landing
-    from felis.sim.scenarios import drop
-
     spec = load_spec(ep.robot)
     controller = _controller(ep, spec)
-    _check(ep)
-    servo = None
-    if ep.servo_params is not None:
-        from felis.sim.servo_file import load_servo_params
-
-        servo = load_servo_params(ep.servo_params, spec)
-    robot = MujocoRobot(spec, servo=servo)
+    backend = (_Dxl if ep.backend == "dxl" else _Sim)(ep, spec, controller)
     files: dict[str, str] = {}
-    with robot:
-        info = drop(robot, *ep.drop) if ep.drop is not None else None
-        recorder = ImpactRecorder(robot).attach() if info is not None else None
-        monitors = [] if ep.progress is None else [ep.progress]
+    with contextlib.ExitStack() as stack:
+        robot = backend.open(stack)
+        info = backend.info
         final_tilt = _FinalTilt() if info is not None else None
-        if final_tilt is not None:
-            monitors.append(final_tilt)
-        video = log = landing = None
+        log = landing = None
         try:
-            if ep.video is not None:
-                from felis.sim.render import VideoRecorder
-
-                video = VideoRecorder(robot, ep.video, fps=ep.fps, width=ep.size[0], height=ep.size[1],
-                                      markers=getattr(controller, "markers", None))
-                monitors.insert(0, video)
+            monitors = [*backend.monitors(), *([] if ep.progress is None else [ep.progress]),
+                        *([] if final_tilt is None else [final_tilt])]
             if ep.log is not None:
-                from felis.logs.runlog import RunLog
-
-                meta = {"controller": ep.controller, "backend": "sim", **ep.meta}
+                meta = {**backend.meta(), **ep.meta}
                 if info is not None:
                     meta["drop"] = _drop_meta(info)
                 log = RunLog(ep.log, spec, meta)
-            report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock=ep.clock,
+            report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock=backend.clock,
                               log=log, monitors=monitors)
             ctl = _summary(controller)
-            if info is not None:
-                landing = assess_landing(robot, recorder)
+            landing = backend.verdict()
         except BaseException:
-            if video is not None:
-                video.abort()
+            backend.abort()
             if log is not None:
                 log.close({"error": "run aborted"})
             raise
+        tilt = None if final_tilt is None else final_tilt.deg
         if log is not None:
             summary = {"run": report.as_dict()}
             if landing is not None:
                 summary["landing"] = landing.as_dict()
             if ctl is not None:
                 summary["controller"] = ctl
+            if tilt is not None and backend.logs_final_tilt:
+                summary["final_tilt_deg"] = tilt
             log.close(summary)
             files["log"] = str(ep.log)
-        if video is not None:
-            files["video"] = str(video.close())
+        backend.finish(files)
     if ep.plot is not None and ep.log is not None:
-        from felis.logs.plot import plot_log
-
         files["plot"] = str(plot_log(ep.log, ep.plot))
-    return EpisodeResult(report=report, landing=landing, drop=info, files=files, controller=ctl,
-                         final_tilt_deg=None if final_tilt is None else final_tilt.deg)
+    return EpisodeResult(report=report, landing=landing, drop=info, files=files, warnings=backend.warnings,
+                         controller=ctl, final_tilt_deg=tilt)
 
 
 def _summary(controller) -> dict | None:
@@ -222,95 +198,143 @@ def _summary(controller) -> dict | None:
     return controller.summary() if callable(getattr(controller, "summary", None)) else None
 
 
-def run_hardware(ep: Episode) -> EpisodeResult:
-    """The same run through the Dynamixel backend (wall clock). ``port="virtual"`` starts a virtual
-    bus whose servos are the MuJoCo model's joints (servo-in-the-loop): the whole hardware path; a drop
-    is held there in the air and falls when torque comes on (module doc)."""
-    import contextlib
+class _Sim:
+    """MuJoCo directly (``clock`` as asked): MuJoCo places a drop, the landing judge gives the verdict, and
+    the run can be filmed."""
 
-    from felis.drivers.dynamixel.robot import DynamixelRobot
+    logs_final_tilt = False  # the landing verdict is the log's account of a drop
 
-    spec = load_spec(ep.robot)
-    controller = _controller(ep, spec)
-    if ep.video is not None:
-        raise ParameterError("video needs the simulation backend (--backend sim)")
-    if ep.port is None:
-        raise ParameterError("the dxl backend needs --port PATH (see `felis find-port`) or --port virtual")
-    needs_imu = bool(getattr(controller, "needs_imu", False))
-    if needs_imu and not spec.sensors.imu:
-        raise ParameterError(f"{ep.controller} needs an IMU and {spec.name}'s description has none")
-    if needs_imu and ep.port != "virtual" and ep.imu_port is None:
-        raise ParameterError(f"{ep.controller} steers by the IMU: give --imu-port PATH (the BNO08x's serial port; "
-                             "`felis find-port` lists candidates)")
-    info = None
-    if ep.drop is not None:
-        if ep.port != "virtual":
-            raise ParameterError(f"a drop on real servos ({ep.port}) is not supported: nobody can place the cat in "
-                                 "the air at a set orientation and let go on cue (no release trigger is built); "
-                                 "use --backend sim or --port virtual")
-        info = _drop_info(ep.drop, spec)
-    if ep.servo_params is not None and ep.port != "virtual":
-        raise ParameterError("--servo-params sets the simulated servos: use it with --backend sim or --port virtual")
-    if ep.servo_params is not None:
-        from felis.sim.servo_file import load_servo_params
+    def __init__(self, ep: Episode, spec, controller):
+        self.ep, self.spec, self.controller = ep, spec, controller
+        self.clock = ep.clock
+        self.warnings: list[str] = []
+        self.info = self.recorder = self.standing = self.video = None
+        _check(ep)
+        self.servo = None
+        if ep.servo_params is not None:
+            from felis.sim.servo_file import load_servo_params  # late: the simulation (MuJoCo)
 
-        load_servo_params(ep.servo_params, spec)  # a bad file is one line here, not a failed child process
-    _check(ep)
-    files: dict[str, str] = {}
-    with contextlib.ExitStack() as stack:
-        port, imu_port = ep.port, ep.imu_port
-        if port == "virtual":
-            from felis.drivers.virtual import spawn
+            self.servo = load_servo_params(ep.servo_params, spec)
 
-            vb = stack.enter_context(spawn(ep.robot, sim=True, baud=ep.baud, servo_params=ep.servo_params,
-                                           drop=ep.drop))
-            port, imu_port = vb.port, imu_port or vb.imu_port
-        calibration = _connect_checks(ep, spec, port)
-        robot = stack.enter_context(DynamixelRobot(spec, port, ep.baud, imu_port=imu_port, calibration=calibration,
-                                                   imu_required=needs_imu))
+    def meta(self) -> dict:
+        return {"controller": self.ep.controller, "backend": "sim"}
+
+    def open(self, stack: contextlib.ExitStack):
+        # late: MuJoCo, the landing judge and its yardstick are only needed on this backend
+        from felis.learning.landing.evaluate import standing_waist_height
+        from felis.sim import MujocoRobot
+        from felis.sim.landing import LandingRecorder
+        from felis.sim.scenarios import drop
+
+        ep, spec = self.ep, self.spec
+        self.robot = robot = stack.enter_context(MujocoRobot(spec, servo=self.servo))
+        self.info = drop(robot, *ep.drop) if ep.drop is not None else None
+        if self.info is not None:  # the landing verdict's yardstick, on a robot of its own: this one stays as dropped
+            with MujocoRobot(spec, servo=self.servo) as stand:
+                self.standing = standing_waist_height(stand)
+        if self.info is not None:
+            self.recorder = LandingRecorder(robot, tuple(spec.sensors.contacts)).attach()
+        return robot
+
+    def monitors(self) -> list:
+        ep = self.ep
+        if ep.video is None:
+            return []
+        from felis.sim.render import VideoRecorder  # late: MuJoCo rendering
+
+        self.video = VideoRecorder(self.robot, ep.video, fps=ep.fps, width=ep.size[0], height=ep.size[1],
+                                   markers=getattr(self.controller, "markers", None))
+        return [self.video]
+
+    def verdict(self):
+        if self.info is None:
+            return None
+        from felis.sim.landing import assess_landing
+
+        return assess_landing(self.robot, self.recorder, self.standing)
+
+    def abort(self) -> None:
+        if self.video is not None:
+            self.video.abort()
+
+    def finish(self, files: dict[str, str]) -> None:
+        if self.video is not None:
+            files["video"] = str(self.video.close())
+
+
+class _Dxl:
+    """Dynamixel servos on ``ep.port`` (wall clock); ``virtual`` starts a virtual bus whose servos are the
+    MuJoCo model's joints (servo-in-the-loop): the whole hardware path; a drop is held there in the air and
+    falls when torque comes on (module doc). No landing judge: the IMU's final tilt is the verdict."""
+
+    clock = "wall"
+    logs_final_tilt = True
+
+    def __init__(self, ep: Episode, spec, controller):
+        self.ep, self.spec = ep, spec
+        self.warnings = ep.warnings
+        if ep.video is not None:
+            raise ParameterError("video needs the simulation backend (--backend sim)")
+        if ep.port is None:
+            raise ParameterError("the dxl backend needs --port PATH (see `felis find-port`) or --port virtual")
+        virtual = is_virtual(ep.port)
+        self.needs_imu = needs_imu = bool(getattr(controller, "needs_imu", False))
+        if needs_imu and not spec.sensors.imu:
+            raise ParameterError(f"{ep.controller} needs an IMU and {spec.name}'s description has none")
+        if needs_imu and not virtual and ep.imu_port is None:
+            raise ParameterError(f"{ep.controller} steers by the IMU: give --imu-port PATH (the BNO08x's serial "
+                                 "port; `felis find-port` lists candidates)")
+        self.info = None
+        if ep.drop is not None:
+            if not virtual:
+                raise ParameterError(f"a drop on real servos ({ep.port}) is not supported: nobody can place the cat "
+                                     "in the air at a set orientation and let go on cue (no release trigger is "
+                                     "built); use --backend sim or --port virtual")
+            self.info = _drop_info(ep.drop, spec)
+        if ep.servo_params is not None and not virtual:
+            raise ParameterError("--servo-params sets the simulated servos: use it with --backend sim or --port "
+                                 "virtual")
+        if ep.servo_params is not None:
+            from felis.sim.servo_file import load_servo_params  # late: the simulation (MuJoCo)
+
+            load_servo_params(ep.servo_params, spec)  # a bad file is one line here, not a failed child process
+        _check(ep)
+
+    def meta(self) -> dict:
+        return {"controller": self.ep.controller, "backend": "dxl", "port": self.ep.port, "baud": self.ep.baud}
+
+    def open(self, stack: contextlib.ExitStack):
+        ep, spec = self.ep, self.spec
+        opened = stack.enter_context(open_ports(ep.port, robot=ep.robot, baud=ep.baud, imu_port=ep.imu_port,
+                                                bus=False, sim=True, servo_params=ep.servo_params, drop=ep.drop))
+        calibration = _connect_checks(ep, spec, opened.port)
+        robot = stack.enter_context(DynamixelRobot(spec, opened.port, ep.baud, imu_port=opened.imu_port,
+                                                   calibration=calibration, imu_required=self.needs_imu))
         ep.warnings.extend(robot.warnings)
-        log = None
-        try:
-            if ep.log is not None:
-                from felis.logs.runlog import RunLog
+        return robot
 
-                meta = {"controller": ep.controller, "backend": "dxl", "port": ep.port, "baud": ep.baud, **ep.meta}
-                if info is not None:
-                    meta["drop"] = _drop_meta(info)
-                log = RunLog(ep.log, spec, meta)
-            monitors = [] if ep.progress is None else [ep.progress]
-            final_tilt = _FinalTilt() if info is not None else None
-            if final_tilt is not None:
-                monitors.append(final_tilt)
-            report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock="wall", log=log,
-                              monitors=monitors)
-            ctl = _summary(controller)
-        except BaseException:
-            if log is not None:
-                log.close({"error": "run aborted"})
-            raise
-        tilt = None if final_tilt is None else final_tilt.deg
-        if log is not None:
-            log.close({"run": report.as_dict(), **({"controller": ctl} if ctl is not None else {}),
-                       **({"final_tilt_deg": tilt} if tilt is not None else {})})
-            files["log"] = str(ep.log)
-    if ep.plot is not None and ep.log is not None:
-        from felis.logs.plot import plot_log
+    def monitors(self) -> list:
+        return []
 
-        files["plot"] = str(plot_log(ep.log, ep.plot))
-    return EpisodeResult(report=report, landing=None, drop=info, files=files, warnings=ep.warnings, controller=ctl,
-                         final_tilt_deg=tilt)
+    def verdict(self):
+        return None
+
+    def abort(self) -> None:
+        pass
+
+    def finish(self, files: dict[str, str]) -> None:
+        pass
 
 
 def _drop_info(drop, spec):
-    """A drop checked in this process (one line, before the virtual bus starts) as a `DropInfo`; free fall
-    √(2h/g) with g = `G`."""
-    from felis.drivers.virtual import check_drop, check_floating_base
-    from felis.sim.scenarios import DropInfo
+    """A drop checked in this process (one line, before the virtual bus starts) as a `felis.scenarios.Drop`
+    (free fall √(2h/g), g = `felis.rotations.G`)."""
+    from felis.scenarios import Drop
+    from felis.sim.servo_in_loop import check_drop, check_floating_base
 
     h, roll, pitch, yaw = check_drop(drop)
     check_floating_base(spec)
-    return DropInfo(h, roll, pitch, yaw, fall_time=math.sqrt(2 * h / G))
+    return Drop(roll, pitch, yaw, h)
 
 
 def _connect_checks(ep: Episode, spec, port: str):
@@ -322,17 +346,16 @@ def _connect_checks(ep: Episode, spec, port: str):
     from felis.calib.calfile import calibration_path, load
     from felis.calib.operator import ConsoleOperator
     from felis.cli.calib import eeprom_check
-    from felis.drivers.dynamixel.bus import DynamixelBus
 
     cal = None
     if ep.calibration is not None or ep.robot_id is not None:
         cal = load(ep.calibration or calibration_path(spec.name, ep.robot_id), spec)
-    elif ep.port != "virtual":
+    elif not is_virtual(ep.port):
         ep.warnings.append(f"no calibration: joint zeros are the servos' raw centre ticks; run `felis calibrate "
                            f"--robot {spec.name} --id NAME` and pass --robot-id NAME")
-    with DynamixelBus(port, ep.baud) as bus:
-        bus.check_quiet()  # the IMU's port given as the bus: say so, not "two servos share an ID"
-        applied = eeprom_check(bus, spec, cal, ConsoleOperator(yes=ep.yes, quiet=True))
+    # quiet_check: the IMU's port given as the bus is named so, not as "two servos share an ID"
+    with open_ports(port, baud=ep.baud, quiet_check=True) as opened:
+        applied = eeprom_check(opened.bus, spec, cal, ConsoleOperator(yes=ep.yes, quiet=True))
     if applied:
         ep.warnings.append(f"applied {len(applied)} EEPROM setting(s): "
                            + ", ".join(f"{d.joint}.{d.item} {d.motor}→{d.expected}" for d in applied[:6])

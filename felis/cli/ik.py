@@ -10,32 +10,40 @@ beside the closed-form and DLS solvers.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
-from felis.errors import ParameterError
+from felis.cli import output
+from felis.cli.args import group
+from felis.errors import ParameterError, TrajectoryError
 
 DEFAULT_OUT = Path("runs/train-ik/ik.npz")
 
 
-def register(train_sub, eval_sub, parser_class, sub=None) -> None:
-    from felis.learning.ik.run import IkTrainConfig
+def _defaults():
+    from felis.learning.ik.run import IkTrainConfig  # late: the training package (torch), for its defaults
 
-    d = IkTrainConfig()
-    if sub is not None:
-        ik = sub.add_parser("ik", help="the arm's IK demonstrations: generate, export")
-        iksub = ik.add_subparsers(dest="ik_command", metavar="IK_COMMAND", parser_class=parser_class)
-        ik.set_defaults(func=lambda a: ik.error("missing sub-command"))
-        dm = iksub.add_parser("demos", help="generate the deterministic demonstration corpus (what `felis train ik` "
-                              "trains on) to .npz, and its splits as CSV files for `felis eval ik`")
-        dm.add_argument("--out", type=Path, required=True, help="directory to write corpus.npz (and CSVs) into")
-        dm.add_argument("--corpus", type=int, default=d.corpus, help=f"trajectories (default {d.corpus})")
-        dm.add_argument("--corpus-seed", type=int, default=d.corpus_seed, help=f"seed (default {d.corpus_seed})")
-        dm.add_argument("--csv", choices=["none", "test", "all"], default="test",
-                        help="also write trajectories as CSV t,x,y,z,q1..q4 (default: the test split)")
-        dm.add_argument("--json", action="store_true", help="print a summary as JSON")
-        dm.set_defaults(func=cmd_ik_demos)
+    return IkTrainConfig()
+
+
+def register(sub) -> None:
+    """Add ``felis ik demos``."""
+    d = _defaults()
+    iksub = group(sub, "ik", "the arm's IK demonstrations: generate, export", "ik_command", "IK_COMMAND")
+    dm = iksub.add_parser("demos", help="generate the deterministic demonstration corpus (what `felis train ik` "
+                          "trains on) to .npz, and its splits as CSV files for `felis eval ik`")
+    dm.add_argument("--out", type=Path, required=True, help="directory to write corpus.npz (and CSVs) into")
+    dm.add_argument("--corpus", type=int, default=d.corpus, help=f"trajectories (default {d.corpus})")
+    dm.add_argument("--corpus-seed", type=int, default=d.corpus_seed, help=f"seed (default {d.corpus_seed})")
+    dm.add_argument("--csv", choices=["none", "test", "all"], default="test",
+                    help="also write trajectories as CSV t,x,y,z,q1..q4 (default: the test split)")
+    dm.add_argument("--json", action="store_true", help="print a summary as JSON")
+    dm.set_defaults(func=cmd_ik_demos)
+
+
+def register_train(train_sub) -> None:
+    """Add ``felis train ik``."""
+    d = _defaults()
     t = train_sub.add_parser("ik", help="train the arm's IK nets (Motion Predictor, Posture Estimator) on "
                              "generated demonstrations")
     t.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"weights file (.npz; default {DEFAULT_OUT})")
@@ -61,6 +69,9 @@ def register(train_sub, eval_sub, parser_class, sub=None) -> None:
     t.add_argument("--json", action="store_true", help="print the results as JSON")
     t.set_defaults(func=cmd_train_ik)
 
+
+def register_eval(eval_sub) -> None:
+    """Add ``felis eval ik``."""
     e = eval_sub.add_parser("ik", help="evaluate the IK pipeline on a trajectory: accuracy, limits, jerk, latency")
     e.add_argument("--trajectory", required=True, metavar="FILE.csv|builtin",
                    help="CSV t,x,y,z at 100 Hz (m, the arm's base frame), or builtin: the held-out test "
@@ -73,7 +84,9 @@ def register(train_sub, eval_sub, parser_class, sub=None) -> None:
 
 
 def cmd_ik_demos(args) -> int:
-    from felis.learning.ik.data import make_corpus, save_corpus, split, write_trajectory_csv
+    from felis.controllers.trajectories import write_trajectory_csv
+    from felis.learning.ik.corpus import save_corpus
+    from felis.learning.ik.data import make_corpus, split
 
     if args.corpus < 3:
         raise ParameterError(f"--corpus must be at least 3 trajectories, got {args.corpus}")
@@ -91,7 +104,7 @@ def cmd_ik_demos(args) -> int:
     summary = {"trajectories": len(corpus), "frames": int(sum(len(t.p) for t in corpus)),
                "split": {k: [t.ident for t in v] for k, v in parts.items()}, "files": len(files), "out": str(out)}
     if args.json:
-        print(json.dumps(summary, indent=2))
+        output.print_json(summary)
     else:
         print(f"{summary['trajectories']} trajectories, {summary['frames']} frames at 100 Hz → {out}/corpus.npz; "
               f"{len(files) - 1} CSV files; split train/val/test {len(parts['train'])}/{len(parts['val'])}/"
@@ -108,8 +121,6 @@ def _check_out(path: Path) -> None:
 
 
 def cmd_train_ik(args) -> int:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
     from felis.learning.ik.run import IkTrainConfig, train_ik
 
     cfg = IkTrainConfig(corpus=args.corpus, corpus_seed=args.corpus_seed, seed=args.seed, kind=args.kind,
@@ -122,9 +133,7 @@ def cmd_train_ik(args) -> int:
     if args.resume and not workdir.is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
     quiet = args.json or not sys.stderr.isatty()
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                   TextColumn("{task.fields[loss]}"), TimeElapsedColumn(), TimeRemainingColumn(),
-                   disable=quiet, transient=False)
+    bar = output.bar(quiet=quiet, field="loss", transient=False)
     tasks: dict[str, int] = {}
 
     def progress(name, epoch, epochs, train_loss, val_loss):
@@ -139,7 +148,7 @@ def cmd_train_ik(args) -> int:
         res = train_ik(cfg, args.out, workdir, resume=args.resume, progress=progress, evaluate_test=not args.no_eval,
                        mp_from=args.mp_from)
     if args.json:
-        print(json.dumps(res, indent=2))
+        output.print_json(res)
         return 0
     print(f"weights: {res['weights']} ({res['size_bytes'] / 1e6:.2f} MB; params {res['params']}); "
           f"trained in {res['train_s']:.0f} s")
@@ -162,8 +171,8 @@ def cmd_eval_ik(args) -> int:
         n, seed = int(corpus.get("trajectories", 400)), int(corpus.get("seed", 1))
         trajs = split(make_corpus(n, seed), seed)[2]
     else:
-        from felis.errors import TrajectoryError
-        from felis.learning.ik.data import demo_joints, read_trajectory_csv
+        from felis.controllers.arm_posture import demo_joints
+        from felis.controllers.trajectories import read_trajectory_csv
 
         traj = read_trajectory_csv(args.trajectory)
         try:  # the demonstrator's joints, when the pitch rule can reach every point, for the jerk ratio
@@ -173,7 +182,7 @@ def cmd_eval_ik(args) -> int:
         trajs = [traj]
     res = evaluate(solver, trajs, seed=args.seed, baselines=not args.no_baselines)
     if args.json:
-        print(json.dumps(res, indent=2))
+        output.print_json(res)
     else:
         _print_eval(res)
     return 0

@@ -1,7 +1,7 @@
 """``felis eval landing``: drop the simulated cat from many orientations and heights and count landings.
 
 ``felis eval landing --drops FILE|random:N [--policy passive|stand|FILE]`` releases the cat once per drop
-and judges each landing by the issue's rule (`felis.sim.drops`): only the feet touch the ground from
+and judges each landing by the issue's rule (`felis.scenarios.verdicts`): only the feet touch the ground from
 touchdown to 0.5 s after it, and then the upper body is within 30° of vertical and the waist above half
 its standing height. It prints the success rate and the reasons for the failures, or with ``--json`` the
 result with one entry per drop (``--out`` also writes it to a file).
@@ -9,18 +9,18 @@ result with one entry per drop (``--out`` also writes it to a file).
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
+from felis.cli import output
 from felis.errors import ParameterError
 
 DEFAULT_TRAIN_OUT = Path("runs/train-landing/landing.npz")
 
 
-def register(train_sub, eval_sub, parser_class) -> None:
-    """Add ``train landing`` and ``eval landing``."""
-    from felis.learning.landing.train import TrainConfig
+def register_train(train_sub) -> None:
+    """Add ``felis train landing``."""
+    from felis.learning.landing.train import TrainConfig  # late: the training package, for its defaults
 
     d = TrainConfig()
     t = train_sub.add_parser("landing", help="evolve the landing nets (seed 000): the simple stage per training "
@@ -60,6 +60,9 @@ def register(train_sub, eval_sub, parser_class) -> None:
     t.add_argument("--json", action="store_true", help="print the results as JSON")
     t.set_defaults(func=cmd_train_landing)
 
+
+def register_eval(eval_sub) -> None:
+    """Add ``felis eval landing``."""
     e = eval_sub.add_parser("landing", help="drop the cat from many orientations and heights: the landing "
                             "success rate of a policy")
     e.add_argument("--drops", required=True, metavar="FILE|random:N",
@@ -96,10 +99,7 @@ def cmd_train_landing(args) -> int:
     if args.resume and not (Path(workdir) / "checkpoint.npz").is_file():
         raise ParameterError(f"--resume: no checkpoint in {workdir}")
     quiet = args.json or not sys.stderr.isatty()
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                   TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(), disable=quiet)
+    bar = output.bar(quiet=quiet, field="info", transient=False)
     tasks: dict[str, int] = {}
 
     def progress(stage, generation, generations, info):
@@ -119,7 +119,7 @@ def cmd_train_landing(args) -> int:
     with bar:
         res = train_landing(cfg, out, workdir, resume=args.resume, progress=progress)
     if args.json:
-        print(json.dumps(res, indent=1))
+        output.print_json(res)
         return 0
     stem = out.with_suffix("")
     print(f"policy: {out}; results: {stem}.results.json; curves: {stem}.curves.png")
@@ -127,26 +127,24 @@ def cmd_train_landing(args) -> int:
 
 
 def cmd_eval_landing(args) -> int:
-    from felis.cli.output import check_json_out, emit
-    from felis.cli.output import progress as _progress
     from felis.learning.landing.evaluate import check_policy, default_policy, run_drops, summarise
-    from felis.sim.drops import drops_from
+    from felis.scenarios.drop import drops_from
 
     drops = drops_from(args.drops, args.seed, args.height)
     args.policy = args.policy or default_policy()
     check_policy(args.policy)
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
-    check_json_out(args.out)
+    output.check_json_out(args.out)
     quiet = args.json or not sys.stderr.isatty()
-    bar, step = _progress(len(drops), "drops", quiet)
+    bar, step = output.progress(len(drops), "drops", quiet)
     with bar:
         outcomes = run_drops(drops, args.policy, workers=args.workers, progress=step)
     summary = summarise(outcomes)
     res = {"success_rate": summary["success_rate"], "policy": args.policy, **summary,
            "drops_source": args.drops, "seed": args.seed if args.drops.startswith("random:") else None}
     res["drops"] = res.pop("drops")  # the per-drop list last, after the headline and the counts
-    return emit(args, res, _print_summary)
+    return output.emit(args, res, _print_summary)
 
 
 def _print_summary(r: dict) -> None:

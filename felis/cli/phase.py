@@ -35,10 +35,12 @@ same pushes (`felis.learning.phase.evaluate`).
 
 from __future__ import annotations
 
-import json
+import sys
 import time
 from pathlib import Path
 
+from felis.cli import output
+from felis.cli.args import group
 from felis.errors import ParameterError
 
 
@@ -72,8 +74,8 @@ def cmd_phase_record(args) -> int:
              "samples": len(r.t), "rate_hz": r.rate_hz, "contacts": r.contacts is not None} for r in recs]
     total = sum(r.duration_s for r in recs)
     if args.json:
-        print(json.dumps({"out": str(path), "set": set_name, "recordings": rows, "seconds": round(total, 3),
-                          "wall_s": round(wall, 2)}, indent=1))
+        output.print_json({"out": str(path), "set": set_name, "recordings": rows, "seconds": round(total, 3),
+                           "wall_s": round(wall, 2)})
         return 0
     for row in rows:
         print(f"{row['name']} ({row['split']}): {row['seconds']:.1f} s, {row['samples']} samples at "
@@ -90,11 +92,9 @@ def cmd_phase_plot(args) -> int:
     return 0
 
 
-def register(sub, parser_class=None) -> None:
+def register(sub) -> None:
     """Add ``felis phase record`` and ``felis phase plot`` to the ``felis`` sub-commands."""
-    phase = sub.add_parser("phase", help="gait data for phase learning: record, plot")
-    phasesub = phase.add_subparsers(dest="phase_command", metavar="PHASE_COMMAND", parser_class=parser_class)
-    phase.set_defaults(func=lambda a: phase.error("missing sub-command"))
+    phasesub = group(sub, "phase", "gait data for phase learning: record, plot", "phase_command", "PHASE_COMMAND")
     rec = phasesub.add_parser("record", help="record joint trajectories of the trotting cat (MuJoCo, the default "
                               "train/heldout schedules) or take them from run logs (--from-log)",
                               description="Record the cat stepping in place at several frequencies and lifts, "
@@ -129,9 +129,9 @@ def register(sub, parser_class=None) -> None:
 DEFAULT_TRAIN_OUT = Path("runs/train-phase/phase.npz")
 
 
-def register_learning(train_sub, eval_sub, parser_class=None) -> None:
-    """Add ``felis train phase`` and ``felis eval phase``."""
-    from felis.learning.phase.train import PhaseTrainConfig
+def register_train(train_sub) -> None:
+    """Add ``felis train phase``."""
+    from felis.learning.phase.train import PhaseTrainConfig  # late: the training package (torch), for its defaults
 
     d = PhaseTrainConfig()
     t = train_sub.add_parser("phase", help="train the periodic autoencoder with FLD (seed 003) on gait recordings; "
@@ -154,6 +154,9 @@ def register_learning(train_sub, eval_sub, parser_class=None) -> None:
     t.add_argument("--json", action="store_true", help="print the results as JSON")
     t.set_defaults(func=cmd_train_phase)
 
+
+def register_eval(eval_sub) -> None:
+    """Add ``felis eval phase``."""
     e = eval_sub.add_parser("phase", help="the phase estimator on held-out gait recordings, and the balance "
                             "monitor's false alarms with and without it as its gait gate")
     e.add_argument("--weights", type=Path, help="PAE weights (default: the shipped ones)")
@@ -169,8 +172,6 @@ def register_learning(train_sub, eval_sub, parser_class=None) -> None:
 
 
 def cmd_train_phase(args) -> int:
-    import sys
-
     from felis.files import check_target
     from felis.learning.phase.run import results_path, train_phase_run
     from felis.learning.phase.train import PhaseTrainConfig
@@ -187,9 +188,7 @@ def cmd_train_phase(args) -> int:
     if args.resume and not (workdir / "checkpoint.npz").is_file():
         raise ParameterError(f"--resume: no checkpoint in {workdir}")
     quiet = args.json or not sys.stderr.isatty()
-    from felis.cli.output import progress as _progress
-
-    bar, step = _progress(cfg.epochs, "epochs", quiet, lines=not args.json)
+    bar, step = output.progress(cfg.epochs, "epochs", quiet, lines=not args.json)
     last = [0]
 
     def progress(epoch, epochs, train_loss, val_loss):
@@ -200,7 +199,7 @@ def cmd_train_phase(args) -> int:
         res = train_phase_run(cfg, out, workdir, data=args.data, scale=args.scale, resume=args.resume,
                               progress=progress)
     if args.json:
-        print(json.dumps(res, indent=1, default=float))
+        output.print_json(res, default=float)
         return 0
     _print_phase(res["heldout_phase"], res["heldout_prediction"])
     print(f"weights: {out} ({res['params']} parameters, best epoch {res['best_epoch']}); "
@@ -209,14 +208,11 @@ def cmd_train_phase(args) -> int:
 
 
 def cmd_eval_phase(args) -> int:
-    import sys
-
-    from felis.cli.output import check_json_out, emit
-    from felis.cli.output import progress as _progress
     from felis.learning.phase.data import load_recordings, record_set
     from felis.learning.phase.estimator import DEFAULT_WEIGHTS
     from felis.learning.phase.evaluate import gate_comparison, phase_metrics
-    from felis.learning.phase.pae import load_pae, load_pae_numpy
+    from felis.learning.phase.infer import load_pae_numpy
+    from felis.learning.phase.pae import load_pae
     from felis.learning.phase.train import evaluate_phase
 
     weights = Path(args.weights or DEFAULT_WEIGHTS)
@@ -232,10 +228,10 @@ def cmd_eval_phase(args) -> int:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
     pushes = None
     if args.pushes != "none":
-        from felis.sim.pushes import pushes_from
+        from felis.scenarios.push import pushes_from
 
         pushes = pushes_from(args.pushes, args.seed)
-    check_json_out(args.out)
+    output.check_json_out(args.out)
     held = load_recordings(args.data, split="heldout") if args.data else record_set("heldout")
     model, _ = load_pae(weights)
     steps = int(meta.get("training", {}).get("config", {}).get("fld_steps", 10))  # the horizon it was trained for
@@ -244,11 +240,11 @@ def cmd_eval_phase(args) -> int:
            "heldout_prediction": evaluate_phase(model, [r.q for r in held], steps)}
     if pushes is not None:
         quiet = args.json or not sys.stderr.isatty()
-        bar, step = _progress(len(pushes), "pushes", quiet)
+        bar, step = output.progress(len(pushes), "pushes", quiet)
         with bar:
             res["gate"] = gate_comparison(pushes, weights, workers=args.workers, progress=step)
         res["pushes_source"], res["seed"] = args.pushes, args.seed
-    return emit(args, res, _print_eval)
+    return output.emit(args, res, _print_eval)
 
 
 def _print_phase(ph: dict, pred: dict) -> None:

@@ -18,12 +18,14 @@ for confirmation unless ``--yes``. Errors are one line.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import json
-import os
 import sys
 from pathlib import Path
 
+from rich.table import Table
+
+from felis.cli import output
+from felis.drivers import ports
+from felis.drivers.dynamixel.robot import DynamixelRobot
 from felis.errors import ParameterError, SysidError
 
 
@@ -61,7 +63,7 @@ def _confirm(args, spec, joints, exc, rate) -> None:
     text = (f"sysid will move {len(joints)} joint(s) of {spec.name} one at a time ({', '.join(joints)}): "
             f"steps up to ±{amp:.2f} rad around the hold pose at full servo speed and a chirp, about {seconds:.0f} s "
             f"at {rate:g} Hz.{stand}")
-    real = args.backend == "dxl" and args.port != "virtual"
+    real = args.backend == "dxl" and not ports.is_virtual(args.port)
     if not args.json:
         print(text, file=sys.stderr)
     if not real or args.yes:
@@ -71,28 +73,6 @@ def _confirm(args, spec, joints, exc, rate) -> None:
     answer = input("continue? [y/N] ")
     if answer.strip().lower() not in ("y", "yes"):
         raise SysidError("cancelled; nothing moved")
-
-
-class _Bar:
-    """Progress on stderr when it is a terminal and output is not JSON."""
-
-    def __init__(self, enabled: bool):
-        self.enabled = enabled and sys.stderr.isatty()
-        self._bar = None
-        if self.enabled:
-            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), transient=True)
-            self._task = self._bar.add_task("", total=1.0)
-            self._bar.start()
-
-    def __call__(self, description: str, fraction: float) -> None:
-        if self._bar is not None:
-            self._bar.update(self._task, description=description, completed=fraction)
-
-    def stop(self) -> None:
-        if self._bar is not None:
-            self._bar.stop()
 
 
 def _record(args, spec, joints, exc, bar):
@@ -110,23 +90,13 @@ def _record(args, spec, joints, exc, bar):
 
         with MujocoRobot(spec, servo=servo, fixed_base=True) as robot:
             return record(robot, joints, rate_hz=rate, exc=exc, backend="sim", progress=progress)
-    from felis.drivers.dynamixel.robot import DynamixelRobot
-
-    port = args.port or os.environ.get("FELIS_PORT")
-    if not port:
-        raise ParameterError("no port: give --port PATH (see `felis find-port`) or --port virtual, or set FELIS_PORT")
-    if servo is not None and port != "virtual":
+    port = ports.resolve(args.port)
+    if servo is not None and not ports.is_virtual(port):
         raise ParameterError("--virtual-servo-params needs --port virtual or --backend sim")
-    with contextlib.ExitStack() as stack:
-        backend = f"dxl {port}"
-        if port == "virtual":
-            from felis.drivers.virtual import spawn
-
-            vb = stack.enter_context(spawn(args.robot, sim=True, baud=args.baud, fixed_base=True,
-                                           servo_params=args.virtual_servo_params))
-            port, backend = vb.port, "dxl virtual"
-        robot = stack.enter_context(DynamixelRobot(spec, port, args.baud))
-        return record(robot, joints, rate_hz=rate, exc=exc, backend=backend, progress=progress)
+    with ports.open_ports(port, robot=args.robot, baud=args.baud, bus=False, sim=True, fixed_base=True,
+                          servo_params=args.virtual_servo_params) as opened, \
+            DynamixelRobot(spec, opened.port, args.baud) as robot:
+        return record(robot, joints, rate_hz=rate, exc=exc, backend=f"dxl {port}", progress=progress)
 
 
 def cmd_sysid(args) -> int:
@@ -148,7 +118,7 @@ def cmd_sysid(args) -> int:
     if args.rate is not None and not 10 <= args.rate <= 1000:
         raise ParameterError(f"rate must be within 10…1000 Hz, got {args.rate:g}")
     exc = Excitation()
-    bar = _Bar(not args.json)
+    bar = output.StageProgress(not args.json)
     files: dict[str, str] = {}
     try:
         if args.from_recording is not None:
@@ -173,19 +143,16 @@ def cmd_sysid(args) -> int:
     info = {"ticks": int(len(rec.q)), "rate_hz": rec.rate_hz, "achieved_hz": 1.0 / period if period > 0 else None,
             "invalid_ticks": int((~rec.valid).sum()), "backend": rec.backend}
     if args.json:
-        print(json.dumps({"robot": spec.name, "recording": info, **result.as_dict(), "files": files}, indent=2))
+        output.print_json({"robot": spec.name, "recording": info, **result.as_dict(), "files": files})
         return 0
     _print_table(result, info, files)
     return 0
 
 
 def _print_table(result, info, files) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    console = Console(highlight=False, soft_wrap=True)
+    console = output.console()
     if not console.is_terminal:
-        console = Console(highlight=False, soft_wrap=True, width=160)
+        console = output.console(width=160)
     t = Table(title=f"{result.robot}: servo model, datasheet → fitted", title_justify="left")
     for col in ("joint", "kp", "damping", "armature", "friction", "torque limit", "step RMS (mrad)",
                 "RMS (mrad)", "×"):
@@ -206,7 +173,7 @@ def _print_table(result, info, files) -> None:
     console.print(f"use it: felis run CONTROLLER --robot {result.robot} --servo-params {files['params']}")
 
 
-def register(sub, parser_class=None) -> None:
+def register(sub) -> None:
     """Add ``felis sysid`` to the ``felis`` sub-commands."""
     p = sub.add_parser("sysid", help="identify the simulated servo model (gain, damping, armature, friction, "
                        "torque limit) from step and chirp responses",

@@ -31,12 +31,9 @@ import time
 SWITCH_INTERVAL_S = 0.0005
 
 
-def register(sub, parser_class=None) -> None:
-    """Add ``virtual-bus`` to the ``felis`` sub-commands.
-
-    ``sub`` is the CLI's sub-parsers action (it already makes one-line-error parsers); ``parser_class``
-    is accepted for the registration convention and unused (this command has no sub-commands).
-    """
+def register(sub) -> None:
+    """Add ``virtual-bus`` to the ``felis`` sub-commands (``sub``: the CLI's sub-parsers action, which makes
+    one-line-error parsers)."""
     p = sub.add_parser("virtual-bus", help="serve emulated Dynamixel servos of a robot on a pseudo-terminal",
                        description="Emulated Dynamixel servos (Protocol 2.0) on a pseudo-terminal: any serial "
                        "client, the dynamixel-sdk included, talks to them as to a USB adapter. Prints "
@@ -125,10 +122,10 @@ def _imu_options(args) -> dict:
     if mount is not None:
         import math
 
-        from felis.drivers.imu import quat_from_rvc
+        from felis.rotations import quat_from_ypr
 
         roll, pitch, yaw = (math.radians(v) for v in mount)
-        out["imu_mount"] = quat_from_rvc(yaw, pitch, roll)
+        out["imu_mount"] = quat_from_ypr(yaw, pitch, roll)
     drift = _triple("--imu-drift", getattr(args, "imu_drift", None))
     if drift is not None:
         out["imu_drift"] = drift
@@ -136,9 +133,10 @@ def _imu_options(args) -> dict:
 
 
 def cmd_virtual_bus(args) -> int:
-    from felis.drivers.virtual import VirtualBus, parse_faults
+    from felis.drivers.virtual import parse_fault_plan
+    from felis.sim.servo_in_loop import virtual_bus
 
-    faults = parse_faults(args.faults) if args.faults else None
+    faults = parse_fault_plan(args.faults) if args.faults else None
     drop = _drop(getattr(args, "drop", None))
     servo_params = None
     if getattr(args, "servo_params", None):
@@ -146,9 +144,9 @@ def cmd_virtual_bus(args) -> int:
         from felis.spec import load_spec
 
         servo_params = load_servo_params(args.servo_params, load_spec(args.robot))
-    bus = VirtualBus.for_robot(args.robot, baud=args.baud, sim=args.sim, wire_time=args.wire_time, faults=faults,
-                               seed=args.seed, servo_params=servo_params,
-                               fixed_base=getattr(args, "fixed_base", False), drop=drop, **_imu_options(args))
+    bus = virtual_bus(args.robot, baud=args.baud, sim=args.sim, wire_time=args.wire_time, faults=faults,
+                      seed=args.seed, servo_params=servo_params,
+                      fixed_base=getattr(args, "fixed_base", False), drop=drop, **_imu_options(args))
     # The handler only appends to a list: an Event.set() there would take the lock that the main thread's
     # own Event.wait() may hold when the signal lands, and a second signal would then deadlock the process.
     stop: list[int] = []

@@ -22,16 +22,7 @@ import numpy as np
 from felis.errors import LogError, ParameterError
 from felis.files import write_atomic
 from felis.logs.runlog import LogData, read_log
-
-
-def tilt_deg(quat: np.ndarray) -> np.ndarray:
-    """Tilt (deg) of the body up axis from world up, per row of (w, x, y, z) quaternions."""
-    q = np.asarray(quat, dtype=float)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        q = q / np.where(norm > 0, norm, np.nan)
-    up_z = 1.0 - 2.0 * (q[..., 1] ** 2 + q[..., 2] ** 2)
-    return np.degrees(np.arccos(np.clip(up_z, -1.0, 1.0)))
+from felis.rotations import tilt_deg
 
 
 def plot_log(path: str | Path, out: str | Path) -> Path:

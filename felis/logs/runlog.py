@@ -14,6 +14,9 @@ Topics (log time = run time ``t`` in ns, ``int(t * 1e9)``):
 ``/summary``   once at the end, if the caller gives one (timing, outcome)
 =============  ===========================================================================
 
+The writer, `JsonMcapWriter`, is the one MCAP writer of felis: `RunLog` adds the topics above, the servo
+monitor's export (`felis.logs.monitorlog`) its ``/monitor``.
+
 Crash safety: the writer runs MCAP unchunked (each message is a complete record on its own) and
 flushes the file after every message, so a process killed mid-run leaves everything up to its last
 call in the operating system's hands; only ``close()`` adds the summary section and footer.
@@ -157,7 +160,94 @@ def _ns(t: float) -> int:
 # writing
 
 
-class RunLog:
+class JsonMcapWriter:
+    """An MCAP file of JSON messages on fixed topics, each with its JSON Schema: the one MCAP writer of felis
+    (run logs, `RunLog`; the servo monitor's export, `felis.logs.monitorlog`).
+
+    Written unchunked and flushed after every message (one whole record each), so a killed process loses
+    nothing written before it died; ``close()`` adds the summary section and footer. ``topics`` maps each
+    topic to (schema name, JSON Schema); ``meta`` is the ``/meta`` message written first at t=0 (when
+    ``/meta`` is one of the topics). Errors are ``error(f"cannot write {what} {path}: …")``.
+    """
+
+    def __init__(self, path: str | Path, topics: dict[str, tuple[str, dict]], meta: dict | None = None, *,
+                 what: str = "run log", error: type[Exception] = LogError):
+        import felis  # late: felis/__init__ may one day import this module
+
+        self.path = Path(path)
+        self._what, self._error = what, error
+        self._closed = False
+        self._last_ns = 0
+        self._encoder = json.JSONEncoder(allow_nan=False, separators=(",", ":"), default=_default)
+        prepare_parent(self.path, what, error)
+        try:
+            self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        except OSError as e:
+            raise error(f"cannot write {what} {self.path}: {e.strerror or e}") from None
+        try:
+            self._writer = Writer(self._file, use_chunking=False, use_summary_offsets=True)
+            self._writer.start(profile=PROFILE, library=f"felis-{felis.__version__}")
+            self._channels = {}
+            for topic, (name, schema) in topics.items():
+                sid = self._writer.register_schema(name=name, encoding="jsonschema",
+                                                   data=json.dumps(schema).encode())
+                self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
+                                                                      schema_id=sid)
+            if meta is not None:
+                self._put("/meta", 0, meta)
+        except (OSError, error) as e:
+            self._file.close()
+            self._closed = True
+            if isinstance(e, error):
+                raise
+            raise error(f"cannot write {what} {self.path}: {e.strerror or e}") from None
+
+    def message(self, topic: str, t: float, msg: dict) -> None:
+        """Write ``msg`` on ``topic`` at run time ``t`` (s; log time ``int(t * 1e9)`` ns)."""
+        self._put(topic, _ns(t), msg)
+
+    def close(self, summary: dict | None = None) -> None:
+        """Write ``/summary`` (if given) and finish the file (summary section, footer). Idempotent."""
+        if self._closed:
+            return
+        try:
+            if summary is not None:
+                self._put("/summary", self._last_ns, summary)
+            self._writer.finish()
+            self._file.flush()
+        except OSError as e:
+            raise self._error(f"cannot finish {self._what} {self.path}: {e.strerror or e}") from None
+        finally:
+            self._closed = True
+            self._file.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _put(self, topic: str, log_ns: int, msg: dict) -> None:
+        if self._closed:
+            raise self._error(f"{self._what} {self.path} is closed; cannot log {topic}")
+        try:
+            text = self._encoder.encode(msg)
+        except (ValueError, TypeError):  # NaN/inf (JSON has none: write null) or non-str keys
+            text = self._encoder.encode(_finite(msg))
+        self._last_ns = max(self._last_ns, log_ns)
+        try:
+            self._writer.add_message(self._channels[topic], log_time=log_ns, data=text.encode(),
+                                     publish_time=log_ns)
+            self._file.flush()
+        except OSError as e:
+            raise self._error(f"cannot write {self._what} {self.path}: {e.strerror or e}") from None
+
+
+class RunLog(JsonMcapWriter):
     """Writes one run to an MCAP file, JSON messages, incrementally (unchunked records, flushed each tick).
 
     Every call writes one whole MCAP record and flushes the file, so a killed process loses nothing
@@ -171,41 +261,17 @@ class RunLog:
     def __init__(self, path: str | Path, spec: RobotSpec, meta: dict | None = None):
         import felis  # late: felis/__init__ may one day import this module
 
-        self.path = Path(path)
         self.spec = spec
-        self._closed = False
-        self._last_ns = 0
-        self._encoder = json.JSONEncoder(allow_nan=False, separators=(",", ":"), default=_default)
-        prepare_parent(self.path, "run log", LogError)
-        try:
-            self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        except OSError as e:
-            raise LogError(f"cannot write run log {self.path}: {e.strerror or e}") from None
-        try:
-            self._writer = Writer(self._file, use_chunking=False, use_summary_offsets=True)
-            self._writer.start(profile=PROFILE, library=f"felis-{felis.__version__}")
-            self._channels = {}
-            for topic, (name, schema) in SCHEMAS.items():
-                sid = self._writer.register_schema(name=name, encoding="jsonschema",
-                                                   data=json.dumps(schema).encode())
-                self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
-                                                                      schema_id=sid)
-            header = {
-                "robot": spec.name,
-                "joints": list(spec.names),
-                "groups": {g: list(js) for g, js in spec.groups.items()},
-                "rate_hz": float(spec.rate_hz),
-                "felis_version": felis.__version__,
-                "started_utc": datetime.now(UTC).isoformat(timespec="milliseconds"),
-                **(meta or {}),
-            }
-            self._put("/meta", 0, header)
-        except (OSError, LogError) as e:
-            self._file.close()
-            self._closed = True
-            if isinstance(e, LogError):
-                raise
-            raise LogError(f"cannot write run log {self.path}: {e.strerror or e}") from None
+        header = {
+            "robot": spec.name,
+            "joints": list(spec.names),
+            "groups": {g: list(js) for g, js in spec.groups.items()},
+            "rate_hz": float(spec.rate_hz),
+            "felis_version": felis.__version__,
+            "started_utc": datetime.now(UTC).isoformat(timespec="milliseconds"),
+            **(meta or {}),
+        }
+        super().__init__(path, SCHEMAS, header)
 
     # -- per tick -------------------------------------------------------------------------------
 
@@ -244,49 +310,8 @@ class RunLog:
         """Log a discrete event (safety clamp, watchdog trip, mode change, ...) on ``/events``."""
         self._put("/events", _ns(t), {"t": float(t), "kind": str(kind), "detail": detail})
 
-    # -- end ------------------------------------------------------------------------------------
-
-    def close(self, summary: dict | None = None) -> None:
-        """Write ``/summary`` (if given) and finish the file (summary section, footer). Idempotent."""
-        if self._closed:
-            return
-        try:
-            if summary is not None:
-                self._put("/summary", self._last_ns, summary)
-            self._writer.finish()
-            self._file.flush()
-        except OSError as e:
-            raise LogError(f"cannot finish run log {self.path}: {e.strerror or e}") from None
-        finally:
-            self._closed = True
-            self._file.close()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
     def __enter__(self) -> RunLog:
         return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    # -- internals ------------------------------------------------------------------------------
-
-    def _put(self, topic: str, log_ns: int, msg: dict) -> None:
-        if self._closed:
-            raise LogError(f"run log {self.path} is closed; cannot log {topic}")
-        try:
-            text = self._encoder.encode(msg)
-        except (ValueError, TypeError):  # NaN/inf (JSON has none: write null) or non-str keys
-            text = self._encoder.encode(_finite(msg))
-        self._last_ns = max(self._last_ns, log_ns)
-        try:
-            self._writer.add_message(self._channels[topic], log_time=log_ns, data=text.encode(),
-                                     publish_time=log_ns)
-            self._file.flush()
-        except OSError as e:
-            raise LogError(f"cannot write run log {self.path}: {e.strerror or e}") from None
 
 
 # ---------------------------------------------------------------------------------------------

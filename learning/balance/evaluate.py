@@ -35,7 +35,9 @@ from felis.controllers.balance import BalanceMonitor
 from felis.controllers.pose import PoseController
 from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController
 from felis.loop import run_loop
-from felis.sim.pushes import FALL_TILT_DEG, FALL_WINDOW_S, FallDetector, Push, Pusher, ThreadedPushTest
+from felis.scenarios.push import FALL_WINDOW_S, Push
+from felis.scenarios.verdicts import FALL_TILT_DEG
+from felis.sim.pushes import FallDetector, Pusher, ThreadedPushTest
 from felis.spec import load_spec
 
 
@@ -148,13 +150,13 @@ def run_push_virtual(p: Push, reaction: str | Callable = "none", *, rate_hz: flo
     monitor has no simulator truth here: it estimates the CoM from the servos' angles and the IMU
     (`felis.bodymodel`), as on the real cat. The push and the fall detector act on the bus's model."""
     from felis.drivers.dynamixel.robot import DynamixelRobot
-    from felis.drivers.virtual import VirtualBus
     from felis.sim.bodymodel import load_body_model
+    from felis.sim.servo_in_loop import virtual_bus
 
     spec = load_spec("cat")
     body = load_body_model(spec)
-    with VirtualBus.for_robot(spec, sim=True) as bus:
-        test = ThreadedPushTest(bus.sim.robot, p, tuple(spec.sensors.contacts))
+    with virtual_bus(spec, sim=True) as bus:
+        test = ThreadedPushTest(bus.backend.robot, p, tuple(spec.sensors.contacts))
         with DynamixelRobot(spec, bus.port, imu_port=bus.imu_port) as robot:
             ctl = ReactiveController(_base(p.phase), BalanceMonitor(body, **(monitor or {})), reaction)
             tr = _Trace(ctl) if trace else None

@@ -27,39 +27,21 @@ Files: corpora as ``.npz`` (no pickle), trajectories as CSV ``t,x,y,z`` at 100 H
 demonstrations from run logs (`recorded_demos`). Units: metres, seconds, radians.
 """
 
+
 from __future__ import annotations
 
-import csv
-import io
-import json
 import math
-import zipfile
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from felis.controllers import armkin
-from felis.controllers.armkin import REACH, SHOULDER
+from felis.armkin import SHOULDER
+from felis.controllers.arm_posture import DT, R_MIN, Z_MIN, demo_joints, in_workspace, smootherstep
+from felis.controllers.trajectories import Trajectory, ease_progress, frame_times
 from felis.errors import ParameterError, TrajectoryError
-from felis.files import check_readable, write_atomic
+from felis.learning.ik.infer import encode_angles, normalise
 
-DT = 0.01  # s: demonstrations are sampled at 100 Hz
-
-# --- the posture rule (see posture_pitch)
-PHI_DOWN = 1.2  # rad (68.8°): tool pitch for a close target at shoulder height
-K_HEIGHT = 2.0  # rad per REACH of height: close targets tip the tool up as they rise
-K_LEAD, V_LEAD = 0.3, 0.15  # rad, m/s: the tool leads vertical motion by up to K_LEAD (tanh(−v_z/V_LEAD))
-D_NEAR, D_FAR = 0.25, 1.0  # blend from "pointing down" (d ≤ D_NEAR) to "along the reach" (d ≥ D_FAR)
-
-# --- the demonstration workspace and motion bounds
-D_MAX = 0.92  # max |p − S| / REACH
-R_MIN = 0.08  # m: min horizontal distance from the joint1 axis
-Z_MIN = 0.03  # m: min height above the base plate
-LIMIT_MARGIN = 0.05  # rad inside the joint limits
-DELTA_MIN = 0.15  # rad: min elbow angle δ (the straight arm, δ = 0, is singular)
 V_MAX = 0.35  # m/s tool speed
 A_MAX = 2.5  # m/s² tool acceleration
 QD_MAX = 4.5  # rad/s per joint (XM430-W350 no-load speed ≈ 4.8 rad/s); also rejects q1 crossing ±π
@@ -68,167 +50,6 @@ KINDS = ("reach", "line", "circle", "pick_place", "spline")
 _MIX = ("reach", "spline", "circle", "line", "pick_place", "reach", "spline", "circle")  # kind of id i: _MIX[i % 8]
 MIN_LEN, MAX_LEN = 4.0, 12.0  # s
 
-# --- network windows (frame offsets at 100 Hz; seed 001 §3.1.2)
-MP_IN = (-10, -5, 0)
-MP_OUT = (5, 10)
-PE_IN = (-10, -5, 0, 5, 10)
-PE_OUT = (0, 1, 2, 3, 4, 5)
-
-BUILTINS = ("circle", "figure8")
-ARM_JOINTS = ("joint1", "joint2", "joint3", "joint4")
-
-
-# ---------------------------------------------------------------------------------------------
-# the demonstrator
-
-
-def smootherstep(x: np.ndarray) -> np.ndarray:
-    """s(x) = x³ (10 − 15 x + 6 x²) on x clipped to [0, 1]: 0 → 1 with s' = s'' = 0 at both ends (C²).
-
-    Also the minimum-jerk progress profile of a rest-to-rest move."""
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * x * (10.0 + x * (-15.0 + 6.0 * x))
-
-
-def posture_pitch(target: np.ndarray, velocity: np.ndarray | None = None) -> np.ndarray:
-    """The demonstrator's tool pitch φ (rad; 0 = level, positive = down) for targets (..., 3) moving at
-    ``velocity`` (..., 3) m/s (None: at rest).
-
-    With rel = target − S, r = |rel_xy| (horizontal distance from the joint1 axis), h = rel_z, v_z the
-    vertical velocity::
-
-        d = |rel| / REACH,   ε = atan2(h, r)   (elevation of the shoulder → target line)
-        w = smootherstep((d − 0.25) / 0.75)
-        φ = (1 − w) (1.2 − 2.0 h / REACH + 0.3 tanh(−v_z / 0.15)) + w (−ε)
-
-    What a person does: a far reach points the tool along the reach direction (φ → −ε as d → 1); a
-    close target is approached from above with the tool pointing down (φ ≈ 1.2 rad at shoulder
-    height, ≈ 1.45 rad at table height), tipping up as the close target rises (the height term).
-    The blend is C² (smootherstep) and ε is smooth away from the joint1 axis, so φ has no kinks in
-    the workspace (r ≥ 0.08 m). The constants were chosen on a grid over the workspace (`in_workspace`)
-    to maximise the smallest distance of φ to the infeasible pitches: ≥ 0.34 rad everywhere (5 mm grid)
-    at rest. The lead term: moving down, a person points the tool further down, moving up tips it up,
-    by up to 0.3 rad (17°; 0.17 rad at 0.1 m/s), smoothly saturating, fading out at full reach where the
-    pitch has no freedom left. It makes the posture depend on the motion, not only on the current
-    target: a solver that sees one frame cannot know it (the input-length ablation).
-    """
-    rel = np.asarray(target, dtype=float) - SHOULDER
-    r = np.hypot(rel[..., 0], rel[..., 1])
-    h = rel[..., 2]
-    d = np.sqrt(r * r + h * h) / REACH
-    w = smootherstep((d - D_NEAR) / (D_FAR - D_NEAR))
-    near = PHI_DOWN - K_HEIGHT * h / REACH
-    if velocity is not None:
-        near = near + K_LEAD * np.tanh(-np.asarray(velocity, dtype=float)[..., 2] / V_LEAD)
-    return (1.0 - w) * near - w * np.arctan2(h, r)
-
-
-def path_velocity(points: np.ndarray) -> np.ndarray:
-    """Velocity (n, 3) m/s of a 100 Hz path (n, 3) by central differences (one-sided at the ends)."""
-    points = np.asarray(points, dtype=float)
-    return np.gradient(points, DT, axis=0) if len(points) > 1 else np.zeros_like(points)
-
-
-def _rule_ik(points: np.ndarray, velocity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Closed form with the posture rule, elbow up: (q (..., 4), reachable (...))."""
-    return armkin.ik_closed(points, posture_pitch(points, velocity), True)
-
-
-def in_workspace(points: np.ndarray) -> np.ndarray:
-    """True where a point (..., 3) is in the demonstration workspace (see the module docstring): inside
-    the reach, height and axis bounds, and the rule's elbow-up pose within the joint limits by
-    `LIMIT_MARGIN` with the elbow bent by at least `DELTA_MIN`. (The margin on joint1, ±π, leaves out a
-    0.05 rad wedge straight behind the base.)"""
-    points = np.asarray(points, dtype=float)
-    rel = points - SHOULDER
-    r = np.hypot(rel[..., 0], rel[..., 1])
-    geo = (np.linalg.norm(rel, axis=-1) <= D_MAX * REACH) & (r >= R_MIN) & (points[..., 2] >= Z_MIN)
-    q, ok = _rule_ik(points)
-    inside = np.all((q >= armkin.LOWER + LIMIT_MARGIN) & (q <= armkin.UPPER - LIMIT_MARGIN), axis=-1)
-    bent = q[..., 2] + armkin.HALF_PI - armkin.BETA >= DELTA_MIN
-    return geo & ok & inside & bent
-
-
-def demo_joints(points: np.ndarray) -> np.ndarray:
-    """Demonstrated joint angles q (n, 4) for a 100 Hz path of tool points (n, 3): `posture_pitch` with
-    the path's velocity (`path_velocity`), elbow up, closed form.
-
-    Raises TrajectoryError naming the first frame whose target has no such pose within the joint limits.
-    """
-    points = np.asarray(points, dtype=float)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise TrajectoryError(f"demo_joints needs points of shape (n, 3), got {points.shape}")
-    vel = path_velocity(points)
-    q, ok = _rule_ik(points, vel)
-    good = ok & armkin.within_limits(q) & np.all(np.isfinite(points), axis=-1)
-    if not good.all():
-        i = int(np.argmin(good))
-        x, y, z = points[i]
-        raise TrajectoryError(f"frame {i}: target ({x:.4f}, {y:.4f}, {z:.4f}) m has no elbow-up pose within the "
-                              f"joint limits at the demonstrator's pitch "
-                              f"{float(posture_pitch(points[i], vel[i])):.3f} rad")
-    return q
-
-
-# ---------------------------------------------------------------------------------------------
-# trajectories
-
-
-@dataclass
-class Trajectory:
-    """A tool-point trajectory at 100 Hz in the arm's base frame.
-
-    t (n,) s; p (n, 3) m; q (n, 4) rad demonstrated joint angles or None; kind (``reach``, ``line``,
-    ``circle``, ``pick_place``, ``spline``, ``file``, ``recorded``, a builtin's name); ident: its id in
-    a corpus (−1 when not from one).
-    """
-
-    t: np.ndarray
-    p: np.ndarray
-    q: np.ndarray | None
-    kind: str
-    ident: int
-
-    def __post_init__(self) -> None:
-        self.t = np.asarray(self.t, dtype=float)
-        self.p = np.asarray(self.p, dtype=float)
-        n = len(self.t)
-        if self.t.ndim != 1 or self.p.shape != (n, 3):
-            raise TrajectoryError(f"trajectory {self.ident} ({self.kind}): t must be (n,) and p (n, 3), "
-                                  f"got {self.t.shape} and {self.p.shape}")
-        if self.q is not None:
-            self.q = np.asarray(self.q, dtype=float)
-            if self.q.shape != (n, 4):
-                raise TrajectoryError(f"trajectory {self.ident} ({self.kind}): q must be ({n}, 4), got {self.q.shape}")
-
-    def __len__(self) -> int:
-        return len(self.t)
-
-
-def ease_progress(t: np.ndarray, duration: float, ramp: float) -> np.ndarray:
-    """Progress u(t) from 0 to 1 over ``duration`` at a speed that ramps up from rest over ``ramp`` s
-    (smootherstep), holds, and ramps down to rest: u' ∝ s(t/ramp) + s((T − t)/ramp) − 1.
-
-    Closed form with F(x) = ∫₀ˣ s = x⁶ − 3x⁵ + 5x⁴/2 (x ≤ 1), F(x) = x − 1/2 (x > 1), ramp τ ≤ T/2::
-
-        u(t) = (τ F(t/τ) + τ F(T/τ) − τ F((T − t)/τ) − t) / (T − τ)
-
-    u, u' and u'' are continuous and u'(0) = u''(0) = u'(T) = u''(T) = 0.
-    """
-    t = np.asarray(t, dtype=float)
-    tau = min(ramp, duration / 2)
-
-    def F(x):
-        x = np.clip(x, 0.0, None)
-        xi = np.minimum(x, 1.0)
-        return np.where(x <= 1.0, xi**4 * (2.5 + xi * (-3.0 + xi)), x - 0.5)
-
-    u = (tau * F(t / tau) + tau * F(duration / tau) - tau * F((duration - t) / tau) - t) / (duration - tau)
-    return np.clip(u, 0.0, 1.0)
-
-
-def _times(length: float) -> np.ndarray:
-    return np.arange(int(round(length / DT)) + 1) * DT
 
 
 def _azimuth(rng: np.random.Generator) -> float:
@@ -304,7 +125,7 @@ def _gen_reach(rng: np.random.Generator, length: float) -> np.ndarray | None:
         if path.time + T > length - 0.1:
             continue  # does not fit in what is left: try a nearer target
         path.add(_line(path.end, b), T, rng.uniform(0.1, 1.0))
-    return path(_times(length)) if path.items else None
+    return path(frame_times(length)) if path.items else None
 
 
 def _gen_line(rng: np.random.Generator, length: float) -> np.ndarray | None:
@@ -334,7 +155,7 @@ def _gen_line(rng: np.random.Generator, length: float) -> np.ndarray | None:
     ends = (b, a)
     while path.time + T <= length - 0.05:
         path.add(_line(path.end, ends[len(path.items) % 2]), T, rng.uniform(0.0, 0.4))
-    return path(_times(length)) if path.items else None
+    return path(frame_times(length)) if path.items else None
 
 
 def _plane(rng: np.random.Generator, theta: float) -> tuple[np.ndarray, np.ndarray]:
@@ -371,7 +192,7 @@ def _gen_circle(rng: np.random.Generator, length: float) -> np.ndarray | None:
         return None
     period = rng.uniform(max(2.0, 2 * np.pi * rho / 0.28), 6.0)
     ramp = rng.uniform(0.5, 1.5)
-    t = _times(length)
+    t = frame_times(length)
     angle = rng.uniform(0, 2 * np.pi) + rng.choice((-1.0, 1.0)) * 2 * np.pi / period * (length - ramp) \
         * ease_progress(t, length, ramp)
     return c + rho * (np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2)
@@ -409,7 +230,7 @@ def _gen_pick_place(rng: np.random.Generator, length: float) -> np.ndarray | Non
         path.add(_line(a, a + up), t_lift, rng.uniform(0.0, 0.2))
         path.add(arc, t_arc, rng.uniform(0.0, 0.2))
         path.add(_line(b + up, b), t_lift, rng.uniform(0.3, 1.0))
-    return path(_times(length)) if path.items else None
+    return path(frame_times(length)) if path.items else None
 
 
 def _gen_spline(rng: np.random.Generator, length: float) -> np.ndarray | None:
@@ -437,7 +258,7 @@ def _gen_spline(rng: np.random.Generator, length: float) -> np.ndarray | None:
     w = np.array(pts)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(w, axis=0), axis=1))])
     spline = CubicSpline(s, w, bc_type="natural")
-    t = _times(length)
+    t = frame_times(length)
     return spline(s[-1] * ease_progress(t, length, ramp))
 
 
@@ -477,7 +298,7 @@ def generate(kind: str, rng: np.random.Generator, ident: int = 0, length: float 
             continue
         q = check_motion(p)
         if q is not None:
-            return Trajectory(t=_times(length), p=p, q=q, kind=kind, ident=ident)
+            return Trajectory(t=frame_times(length), p=p, q=q, kind=kind, ident=ident)
     raise TrajectoryError(f"no acceptable {kind} trajectory of {length:.2f} s in {max_tries} tries")
 
 
@@ -519,25 +340,6 @@ def split(corpus: Sequence[Trajectory], seed: int, fractions: Sequence[float] = 
 # network data
 
 
-def normalise(p: np.ndarray) -> np.ndarray:
-    """v = (p − S) / REACH (..., 3): the shoulder → tool vector over the limb length (seed 001 §3.1.1)."""
-    return (np.asarray(p, dtype=float) - SHOULDER) / REACH
-
-
-def encode_angles(q: np.ndarray) -> np.ndarray:
-    """(..., 4) angles → (..., 8) as (sin q1, cos q1, sin q2, cos q2, …): continuous across ±π."""
-    q = np.asarray(q, dtype=float)
-    return np.stack([np.sin(q), np.cos(q)], axis=-1).reshape(q.shape[:-1] + (2 * q.shape[-1],))
-
-
-def decode_angles(x: np.ndarray) -> np.ndarray:
-    """(..., 8) (sin, cos) pairs → (..., 4) angles in [−π, π] by atan2(s, c) (scale-free, so a pair
-    need not have norm 1)."""
-    x = np.asarray(x, dtype=float)
-    pairs = x.reshape(x.shape[:-1] + (x.shape[-1] // 2, 2))
-    return np.arctan2(pairs[..., 0], pairs[..., 1])
-
-
 def windows(trajs: Sequence[Trajectory], offsets_in: Sequence[int], offsets_out: Sequence[int],
             target: str = "points") -> tuple[np.ndarray, np.ndarray]:
     """Training pairs at every frame i of every trajectory.
@@ -568,205 +370,3 @@ def windows(trajs: Sequence[Trajectory], offsets_in: Sequence[int], offsets_out:
     if not xs:
         return np.zeros((0, len(oin), 3), np.float32), np.zeros((0, width * len(oout)), np.float32)
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
-
-
-# ---------------------------------------------------------------------------------------------
-# files
-
-_FORMAT = "felis-ik-corpus"
-
-
-def save_corpus(path: str | Path, corpus: Sequence[Trajectory]) -> Path:
-    """Write a corpus as ``.npz`` (atomically, no pickle): arrays ``t`` (N,), ``p`` (N, 3), ``q`` (N, 4)
-    (NaN for a trajectory without angles), ``start`` (n + 1,) frame offsets, and ``meta``, a JSON
-    string {format, version, kinds, ids, has_q}."""
-    path = Path(path)
-    start = np.concatenate([[0], np.cumsum([len(tr.t) for tr in corpus])]).astype(np.int64)
-    q_rows = [tr.q if tr.q is not None else np.full((len(tr.t), 4), np.nan) for tr in corpus]
-    meta = {"format": _FORMAT, "version": 1, "kinds": [tr.kind for tr in corpus],
-            "ids": [int(tr.ident) for tr in corpus], "has_q": [tr.q is not None for tr in corpus]}
-    buf = io.BytesIO()
-    np.savez(buf, t=np.concatenate([tr.t for tr in corpus]) if corpus else np.zeros(0),
-             p=np.concatenate([tr.p for tr in corpus]) if corpus else np.zeros((0, 3)),
-             q=np.concatenate(q_rows) if corpus else np.zeros((0, 4)), start=start, meta=np.array(json.dumps(meta)))
-    return write_atomic(path, buf.getvalue(), "IK corpus", TrajectoryError)
-
-
-def load_corpus(path: str | Path) -> list[Trajectory]:
-    """Read a corpus written by `save_corpus`; TrajectoryError (one line) for a missing, corrupt or
-    foreign file."""
-    path = Path(path)
-    if not path.exists():
-        raise TrajectoryError(f"{path}: no such corpus file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("t", "p", "q", "start", "meta") if k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise TrajectoryError(f"{path}: not a corpus .npz file ({e})") from None
-    missing = [k for k in ("t", "p", "q", "start", "meta") if k not in arrays]
-    if missing:
-        raise TrajectoryError(f"{path}: not an IK corpus: missing array(s) {', '.join(missing)}")
-    try:
-        meta = json.loads(str(arrays["meta"]))
-        kinds, ids, has_q = meta["kinds"], meta["ids"], meta["has_q"]
-        if meta.get("format") != _FORMAT:
-            raise ValueError(f"format {meta.get('format')!r}")
-    except (ValueError, KeyError, TypeError) as e:
-        raise TrajectoryError(f"{path}: not an IK corpus: bad meta ({e})") from None
-    t, p, q, start = arrays["t"], arrays["p"], arrays["q"], arrays["start"]
-    n_all = len(t)
-    ok = (t.ndim == 1 and p.shape == (n_all, 3) and q.shape == (n_all, 4) and start.ndim == 1
-          and len(start) == len(kinds) + 1 == len(ids) + 1 == len(has_q) + 1
-          and start[0] == 0 and start[-1] == n_all and np.all(np.diff(start) >= 0))
-    if not ok:
-        raise TrajectoryError(f"{path}: IK corpus arrays have inconsistent shapes (t {t.shape}, p {p.shape}, "
-                              f"q {q.shape}, start {start.shape}, {len(kinds)} trajectories)")
-    return [Trajectory(t=t[a:b].copy(), p=p[a:b].copy(), q=q[a:b].copy() if hq else None, kind=str(k), ident=int(i))
-            for a, b, k, i, hq in zip(start[:-1], start[1:], kinds, ids, has_q, strict=True)]
-
-
-def read_trajectory_csv(path: str | Path) -> Trajectory:
-    """A tool-point trajectory from CSV: a header with columns ``t,x,y,z`` (any order, extra columns
-    ignored), then one row per 100 Hz frame (t in s, x y z in m in the arm's base frame).
-
-    TrajectoryError (``<file>:<line>: column <c>: …``) for: a missing file, a missing column, a value
-    that is not a number or not finite, fewer than 2 rows, t not strictly increasing, or a step that
-    is not 0.01 s ± 10%. Returns kind ``file``, ident −1, q None.
-    """
-    path = Path(path)
-    check_readable(path, "trajectory file", TrajectoryError)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise TrajectoryError(f"{path}: no such trajectory file") from None
-    except IsADirectoryError:
-        raise TrajectoryError(f"{path}: is a directory, not a trajectory file") from None
-    except UnicodeDecodeError:
-        raise TrajectoryError(f"{path}: not a text CSV file") from None
-    except OSError as e:
-        raise TrajectoryError(f"{path}: cannot read trajectory file: {e.strerror or e}") from None
-    reader = csv.reader(io.StringIO(text))
-    header = next(reader, None)
-    if not header or not any(h.strip() for h in header):
-        raise TrajectoryError(f"{path}:1: empty; expected a header line with columns t,x,y,z")
-    names = [h.strip().lower() for h in header]
-    cols = {}
-    for c in ("t", "x", "y", "z"):
-        if c not in names:
-            raise TrajectoryError(f"{path}:1: missing column {c!r} (header: {','.join(names)}; needs t,x,y,z)")
-        if names.count(c) > 1:
-            raise TrajectoryError(f"{path}:1: column {c!r} appears {names.count(c)} times")
-        cols[c] = names.index(c)
-    rows, lines = [], []
-    for row in reader:
-        line = reader.line_num
-        if not row or all(not f.strip() for f in row):
-            continue
-        if len(row) < len(names):
-            raise TrajectoryError(f"{path}:{line}: {len(row)} fields, the header has {len(names)}")
-        values = []
-        for c, j in cols.items():
-            try:
-                v = float(row[j])
-            except ValueError:
-                raise TrajectoryError(f"{path}:{line}: column {c}: {row[j].strip()!r} is not a number") from None
-            if not math.isfinite(v):
-                raise TrajectoryError(f"{path}:{line}: column {c}: {row[j].strip()!r} is not finite")
-            values.append(v)
-        rows.append(values)
-        lines.append(line)
-    if len(rows) < 2:
-        raise TrajectoryError(f"{path}: {len(rows)} data row(s); a trajectory needs at least 2")
-    data = np.array(rows)
-    t = data[:, 0]
-    dt = np.diff(t)
-    for k in range(len(dt)):
-        if dt[k] <= 0:
-            raise TrajectoryError(f"{path}:{lines[k + 1]}: column t: {t[k + 1]:g} s is not after {t[k]:g} s "
-                                  f"(line {lines[k]}); time must increase strictly")
-        if abs(dt[k] - DT) > 0.1 * DT:
-            raise TrajectoryError(f"{path}:{lines[k + 1]}: column t: step {dt[k]:.6g} s from line {lines[k]}; "
-                                  f"trajectories are sampled at 100 Hz (0.01 s ± 10%)")
-    return Trajectory(t=t, p=data[:, 1:], q=None, kind="file", ident=-1)
-
-
-def write_trajectory_csv(path: str | Path, traj: Trajectory) -> Path:
-    """Write ``t,x,y,z`` (and ``q1…q4`` when the trajectory has angles), floats in shortest round-trip
-    form, atomically."""
-    path = Path(path)
-    cols = [traj.t[:, None], traj.p] + ([traj.q] if traj.q is not None else [])
-    data = np.concatenate(cols, axis=1)
-    head = "t,x,y,z" + (",q1,q2,q3,q4" if traj.q is not None else "")
-    body = "\n".join(",".join(repr(float(v)) for v in row) for row in data)
-    return write_atomic(path, head + "\n" + body + "\n", "trajectory file", TrajectoryError)
-
-
-# ---------------------------------------------------------------------------------------------
-# builtin and recorded trajectories
-
-CIRCLE_CENTRE = {"vertical": np.array([0.22, 0.0, 0.16]), "horizontal": np.array([0.22, 0.0, 0.10])}
-CIRCLE_RADIUS, CIRCLE_PERIOD = 0.06, 4.0
-FIGURE8_CENTRE = np.array([0.22, 0.0, 0.16])
-FIGURE8_SIZE, FIGURE8_PERIOD = (0.12, 0.06), 6.0
-RAMP = 1.0  # s: ease in from rest and out to rest
-
-
-def builtin_trajectory(name: str, duration: float | None = None, *, plane: str = "vertical") -> Trajectory:
-    """A builtin tracking target in front of the arm, eased in from rest and out to rest over 1 s.
-
-    ``circle``: radius 6 cm, period 4 s, in the vertical plane facing the arm (x = 0.22 m, centre
-    z = 0.16 m) or, with ``plane="horizontal"``, at z = 0.10 m; default 9 s (two laps). ``figure8``:
-    a lemniscate of Gerono 12 cm wide (y) × 6 cm high (z) in the vertical plane x = 0.22 m,
-    (y, z) = c + (0.06 sin θ, 0.03 sin 2θ), period 6 s, starting at its crossing; default 7 s (one lap).
-    With θ = 2π/period · (T − 1 s) · `ease_progress`, a duration of k periods + 1 s closes the curve.
-    Every frame is in the demonstration workspace; q is filled by `demo_joints`.
-    """
-    if name not in BUILTINS:
-        raise ParameterError(f"unknown builtin trajectory {name!r}; builtins: {', '.join(BUILTINS)}")
-    if name == "circle" and plane not in CIRCLE_CENTRE:
-        raise ParameterError(f"circle plane must be 'vertical' or 'horizontal', got {plane!r}")
-    period = CIRCLE_PERIOD if name == "circle" else FIGURE8_PERIOD
-    if duration is None:
-        duration = 2 * period + RAMP if name == "circle" else period + RAMP
-    if not (math.isfinite(duration) and duration >= 2 * DT):
-        raise ParameterError(f"trajectory duration must be at least {2 * DT} s, got {duration}")
-    t = _times(duration)
-    ramp = min(RAMP, duration / 2)
-    theta = 2 * np.pi / period * (duration - ramp) * ease_progress(t, duration, ramp)
-    if name == "circle":
-        c = CIRCLE_CENTRE[plane]
-        e1 = np.array([0.0, 1.0, 0.0])
-        e2 = np.array([0.0, 0.0, 1.0]) if plane == "vertical" else np.array([1.0, 0.0, 0.0])
-        # starts at the bottom (vertical) or the point nearest the base (horizontal), heading +y
-        p = c + CIRCLE_RADIUS * (np.sin(theta)[:, None] * e1 - np.cos(theta)[:, None] * e2)
-    else:
-        w, h = FIGURE8_SIZE
-        p = FIGURE8_CENTRE + np.stack([0 * theta, w / 2 * np.sin(theta), h / 2 * np.sin(2 * theta)], -1)
-    return Trajectory(t=t, p=p, q=demo_joints(p), kind=name, ident=-1)
-
-
-def recorded_demos(log_path: str | Path) -> Trajectory:
-    """A demonstration from a run log of the arm: the measured joint angles q (joint1–4) and the tool
-    points fk(q); kind ``recorded``, t the log's state times.
-
-    TrajectoryError when the log is not of the arm (no joint1–4), was not recorded at 100 Hz, has
-    fewer than 2 states, or has a non-finite angle; LogError when it cannot be read at all.
-    """
-    from felis.logs.runlog import read_log
-
-    data = read_log(log_path)
-    missing = [j for j in ARM_JOINTS if j not in data.joints]
-    if missing:
-        raise TrajectoryError(f"{data.path}: not a run log of the arm (robot {data.robot!r}, no joint(s) "
-                              f"{', '.join(missing)})")
-    rate = data.meta.get("rate_hz")
-    if isinstance(rate, int | float) and abs(rate * DT - 1.0) > 0.1:
-        raise TrajectoryError(f"{data.path}: recorded at {rate:g} Hz; IK demonstrations are 100 Hz")
-    if len(data.t) < 2:
-        raise TrajectoryError(f"{data.path}: {len(data.t)} state(s); a demonstration needs at least 2")
-    q = data.q[:, [data.joints.index(j) for j in ARM_JOINTS]]
-    bad = ~(np.all(np.isfinite(q), axis=1) & np.isfinite(data.t))
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise TrajectoryError(f"{data.path}: state {i} (t = {data.t[i]:g} s) has a missing or non-finite joint angle")
-    return Trajectory(t=data.t.copy(), p=armkin.fk(q), q=q.copy(), kind="recorded", ident=-1)

@@ -26,20 +26,13 @@ import time
 
 import numpy as np
 
-from felis.controllers import armkin
-from felis.learning.ik.data import DT, Trajectory, path_velocity, posture_pitch
+from felis import armkin
+from felis.controllers.arm_posture import DT, path_velocity, posture_pitch
+from felis.controllers.arm_track import error_stats
+from felis.controllers.trajectories import Trajectory
 from felis.learning.ik.solver import HISTORY, IkSolver
 
 JOINTS = armkin.JOINTS
-
-
-def error_stats(err_m: np.ndarray) -> dict:
-    """mean, median, p95, p99, max of position errors, in millimetres."""
-    e = np.asarray(err_m, dtype=float) * 1e3
-    if e.size == 0:
-        return {k: None for k in ("mean_mm", "median_mm", "p95_mm", "p99_mm", "max_mm")}
-    return {"mean_mm": float(e.mean()), "median_mm": float(np.median(e)), "p95_mm": float(np.percentile(e, 95)),
-            "p99_mm": float(np.percentile(e, 99)), "max_mm": float(e.max())}
 
 
 def jerk(q: np.ndarray, dt: float = DT) -> np.ndarray:

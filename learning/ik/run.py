@@ -20,11 +20,18 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
-
 from felis.errors import ParameterError
-from felis.learning.ik.data import MP_IN, MP_OUT, PE_IN, PE_OUT, make_corpus, split, windows
+from felis.files import write_atomic
+from felis.learning.common.curves import plot_loss_curves
+from felis.learning.ik.corpus import recorded_demos
+from felis.learning.ik.data import make_corpus, split, windows
+from felis.learning.ik.evaluate import evaluate
+from felis.learning.ik.infer import MP_IN, MP_OUT, PE_IN, PE_OUT, NetSpec, load_arrays
+from felis.learning.ik.net import save_weights, torch_to_arrays
+from felis.learning.ik.solver import IkSolver
+from felis.learning.ik.train import TrainConfig, train_net
 
+NET_TITLES = {"mp": "Motion Predictor", "pe": "Posture Estimator"}  # panels of the learning curves
 PE_VARIANTS: dict[int, tuple[int, ...]] = {1: (0,), 3: (-10, -5, 0), 5: tuple(PE_IN)}
 
 
@@ -65,8 +72,6 @@ def data(cfg: IkTrainConfig):
     corpus = make_corpus(cfg.corpus, cfg.corpus_seed)
     train, val, test = split(corpus, cfg.corpus_seed)
     if cfg.recorded:  # recorded runs of the arm (`felis run … --log`): demonstrations too, for training only
-        from felis.learning.ik.data import recorded_demos
-
         train = train + [recorded_demos(Path(p)) for p in cfg.recorded]
     pe_in = PE_VARIANTS[cfg.pe_frames]
     sets = {}
@@ -87,9 +92,6 @@ def train_ik(cfg: IkTrainConfig, out: Path, workdir: Path, *, resume: bool = Fal
 
     ``mp_from``: take the Motion Predictor from this weights file instead of training one (the
     ablations vary only the Posture Estimator)."""
-    from felis.learning.ik.net import NetSpec, save_weights, torch_to_arrays
-    from felis.learning.ik.train import TrainConfig, train_net
-
     cfg.check()
     out, workdir = Path(out), Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -100,8 +102,6 @@ def train_ik(cfg: IkTrainConfig, out: Path, workdir: Path, *, resume: bool = Fal
     nets, history = {}, {}
     for name, k, n_out in (("mp", len(MP_IN), 3 * len(MP_OUT)), ("pe", len(pe_in), 8 * len(PE_OUT))):
         if name == "mp" and mp_from is not None:  # ablations share one Motion Predictor
-            from felis.learning.ik.net import load_arrays
-
             arrs, old = load_arrays(mp_from, expect={"nets": ["mp"]})
             nets[name] = arrs["mp"]
             history[name] = old.get("history", {}).get("mp", {"train": [], "val": []})
@@ -124,34 +124,8 @@ def train_ik(cfg: IkTrainConfig, out: Path, workdir: Path, *, resume: bool = Fal
                "params": {n: int(s.param_count) for n, (s, _) in nets.items()}, "corpus": meta["corpus"],
                "history": history, "train_s": round(train_s, 1)}
     if evaluate_test:
-        from felis.learning.ik.evaluate import evaluate
-        from felis.learning.ik.solver import IkSolver
-
         results["test"] = evaluate(IkSolver.load(out), test, baselines=baselines)
     stem = out.with_suffix("")
-    from felis.files import write_atomic
-
     write_atomic(Path(f"{stem}.results.json"), json.dumps(results, indent=2), "IK results", ParameterError)
-    plot_curves(history, Path(f"{stem}.curves.png"))
+    plot_loss_curves(history, Path(f"{stem}.curves.png"), NET_TITLES)
     return results
-
-
-def plot_curves(history: dict, path: Path) -> Path:
-    """Training and validation loss per epoch of each net, log scale."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(history), figsize=(5 * len(history), 3.5), squeeze=False)
-    for ax, (name, h) in zip(axes[0], history.items(), strict=True):
-        ax.semilogy(np.arange(1, len(h["train"]) + 1), h["train"], label="train")
-        ax.semilogy(np.arange(1, len(h["val"]) + 1), h["val"], label="validation")
-        ax.set_title({"mp": "Motion Predictor", "pe": "Posture Estimator"}.get(name, name))
-        ax.set_xlabel("epoch")
-        ax.set_ylabel("MSE (standardised)")
-        ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path

@@ -39,9 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
-from felis.controllers import armkin
+from felis import armkin
 from felis.errors import TrajectoryError, WeightsError
-from felis.learning.ik.data import MP_IN, MP_OUT, PE_OUT, decode_angles, normalise
+from felis.learning.ik.infer import MP_IN, MP_OUT, PE_OUT, decode_angles, load_weights, normalise
 
 DEFAULT_WEIGHTS = Path(__file__).parents[1] / "weights" / "ik.npz"
 HISTORY = 11  # targets i−10 … i
@@ -89,7 +89,7 @@ class IkStep:
 
 
 class IkSolver:
-    """The streaming pipeline. ``nets`` holds ``"mp"`` and ``"pe"`` (`felis.learning.ik.net.NumpyNet`),
+    """The streaming pipeline. ``nets`` holds ``"mp"`` and ``"pe"`` (`felis.learning.ik.infer.NumpyNet`),
     ``pe_in`` the Posture Estimator's input frame offsets (a subset of −10, −5, 0, 5, 10)."""
 
     def __init__(self, nets: dict, pe_in: tuple[int, ...], *, filter_past: int = PAST, use_filter: bool = True,
@@ -113,8 +113,6 @@ class IkSolver:
     @classmethod
     def load(cls, path: str | Path | None = None, **kwargs) -> IkSolver:
         """The pipeline from a weights file (default: the shipped ``learning/weights/ik.npz``)."""
-        from felis.learning.ik.net import load_weights
-
         nets, meta = load_weights(Path(path) if path is not None else DEFAULT_WEIGHTS, expect={"nets": ("mp", "pe")})
         solver = cls(nets, tuple(meta.get("pe_in", (-10, -5, 0, 5, 10))), **kwargs)
         solver.meta = meta

@@ -21,8 +21,6 @@ pickle) replaced atomically, so a run killed at any instant leaves the previous 
 
 from __future__ import annotations
 
-import time
-import zlib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -32,7 +30,9 @@ import numpy as np
 
 from felis.errors import ParameterError, WeightsError
 from felis.learning.common.checkpoints import load_checkpoint, save_checkpoint
-from felis.learning.ik.net import NetSpec, check_arrays, model_from_spec, torch_to_arrays
+from felis.learning.common.curves import TorchSettings, fingerprint, run_epochs, stats
+from felis.learning.ik.infer import NetSpec, check_arrays
+from felis.learning.ik.net import model_from_spec, torch_to_arrays
 
 CHECKPOINT_ID = "felis-ik-checkpoint"
 CHECKPOINT_SCHEMA = 1
@@ -108,14 +108,6 @@ def new_history() -> History:
     return {"train": [], "val": [], "lr": [], "seconds": [], "best_epoch": 0, "best_val": None}
 
 
-def _stats(a: np.ndarray, axes: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and std over ``axes`` in float64; a (near-)constant channel gets std 1 so it passes unscaled."""
-    mean = a.mean(axis=axes, dtype=np.float64)
-    std = a.std(axis=axes, dtype=np.float64)
-    std = np.where(std > 1e-8 * np.maximum(1.0, np.abs(mean)), std, 1.0)
-    return mean, std
-
-
 def _check_data(X, Y, spec: NetSpec, what: str) -> tuple[np.ndarray, np.ndarray]:
     X = np.asarray(X, dtype=np.float32)
     Y = np.asarray(Y, dtype=np.float32)
@@ -129,40 +121,6 @@ def _check_data(X, Y, spec: NetSpec, what: str) -> tuple[np.ndarray, np.ndarray]
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(Y))):
         raise ParameterError(f"{what} set holds non-finite values")
     return X, Y
-
-
-def _fingerprint(*arrays: np.ndarray) -> str:
-    """Shapes and CRC-32 of the data, so a checkpoint is not resumed on other data."""
-    crc = 0
-    for a in arrays:
-        crc = zlib.crc32(np.ascontiguousarray(a).view(np.uint8).ravel(), crc)
-    return f"{'/'.join('x'.join(map(str, a.shape)) for a in arrays)}:{crc:08x}"
-
-
-class _TorchSettings:
-    """Set torch's thread count and deterministic mode for a training run; restore them afterwards
-    (the caller's process keeps its own settings: no global state leaks out of `train_net`)."""
-
-    def __init__(self, threads: int):
-        self.threads = threads
-
-    def __enter__(self):
-        import torch
-
-        self._saved = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled(),
-                       torch.is_deterministic_algorithms_warn_only_enabled())
-        if self.threads > 0:
-            torch.set_num_threads(self.threads)
-        torch.use_deterministic_algorithms(True, warn_only=True)
-        return self
-
-    def __exit__(self, *exc):
-        import torch
-
-        threads, det, warn_only = self._saved
-        torch.set_num_threads(threads)
-        torch.use_deterministic_algorithms(det, warn_only=warn_only)
-        return False
 
 
 def train_net(X, Y, Xval, Yval, spec: NetSpec, cfg: TrainConfig, checkpoint: Path | None = None,
@@ -188,13 +146,13 @@ def train_net(X, Y, Xval, Yval, spec: NetSpec, cfg: TrainConfig, checkpoint: Pat
     has_val = Xval is not None
     if has_val:
         Xval, Yval = _check_data(Xval, Yval, spec, "validation")
-    x_mean, x_std = _stats(X, (0, 1))
-    y_mean, y_std = _stats(Y, (0,))
-    fingerprint = _fingerprint(X, Y, *((Xval, Yval) if has_val else ()))
+    x_mean, x_std = stats(X, (0, 1))
+    y_mean, y_std = stats(Y, (0,))
+    data_id = fingerprint(X, Y, *((Xval, Yval) if has_val else ()))
     run_id = {"spec": spec.to_json(), "config": {k: v for k, v in asdict(cfg).items() if k != "epochs"},
-              "data": fingerprint}
+              "data": data_id}
 
-    with _TorchSettings(cfg.threads):
+    with TorchSettings(cfg.threads):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.seed)
             model = model_from_spec(spec)
@@ -213,41 +171,23 @@ def train_net(X, Y, Xval, Yval, spec: NetSpec, cfg: TrainConfig, checkpoint: Pat
         if resume and checkpoint is not None and Path(checkpoint).exists():
             start, hist, best = _load_checkpoint(Path(checkpoint), run_id, spec, model, opt, gen)
 
-        params = list(model.parameters())
         n = xs.shape[0]
-        for epoch in range(start, cfg.epochs):
-            t0 = time.perf_counter()
-            lr = cfg.lr_at(epoch)
-            for group in opt.param_groups:
-                group["lr"] = lr
-            model.train()
-            perm = torch.randperm(n, generator=gen)
-            total = torch.zeros((), dtype=torch.float64)
-            for i in range(0, n, cfg.batch):
-                idx = perm[i:i + cfg.batch]
-                loss = torch.nn.functional.mse_loss(model.core(xs[idx]), ys[idx])
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if cfg.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip, foreach=True)
-                opt.step()
-                total += loss.detach().double() * idx.numel()
+
+        def batch_loss(idx):
+            loss = torch.nn.functional.mse_loss(model.core(xs[idx]), ys[idx])
+            return loss, loss.detach()
+
+        def finish(total):
             train_loss = float(total) / n
-            val_loss = _evaluate(model, xv, yv) if has_val else train_loss
-            if not np.isfinite(train_loss) or not np.isfinite(val_loss):
-                raise ParameterError(f"training of net {spec.name!r} diverged at epoch {epoch + 1} (loss "
-                                     f"{train_loss:.3g}); lower the lr (now {cfg.lr:g}) or grad_clip")
-            hist["train"].append(train_loss)
-            hist["val"].append(val_loss)
-            hist["lr"].append(lr)
-            hist["seconds"].append(round(time.perf_counter() - t0, 3))
-            if hist["best_val"] is None or val_loss < hist["best_val"]:
-                hist["best_val"], hist["best_epoch"] = val_loss, epoch + 1
-                best = {k: v.detach().clone() for k, v in model.state_dict().items()}
-            if checkpoint is not None:
-                _save_checkpoint(Path(checkpoint), run_id, epoch + 1, model, opt, gen, hist, best)
-            if progress is not None:
-                progress(epoch + 1, cfg.epochs, train_loss, val_loss)
+            return train_loss, _evaluate(model, xv, yv) if has_val else train_loss, ()
+
+        def diverged(epoch: int, train_loss: float) -> Exception:
+            return ParameterError(f"training of net {spec.name!r} diverged at epoch {epoch} (loss "
+                                  f"{train_loss:.3g}); lower the lr (now {cfg.lr:g}) or grad_clip")
+
+        save = None if checkpoint is None else (
+            lambda epoch, hist, best: _save_checkpoint(Path(checkpoint), run_id, epoch, model, opt, gen, hist, best))
+        best = run_epochs(model, opt, gen, n, cfg, start, hist, best, batch_loss, finish, diverged, save, progress)
         model.load_state_dict(best)
         model.eval()
     return model, hist

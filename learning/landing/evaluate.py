@@ -1,13 +1,16 @@
 """Drop experiments on the simulated cat: one drop per episode, judged by the `landed` rule (issue 5).
 
 An episode: the cat is reset to the model's pose (every joint at 0), turned and lifted by
-`felis.sim.scenarios.drop`, released at rest, and a policy runs in `felis.loop.run_loop` at 100 Hz for
+`felis.sim.scenarios.apply_drop`, released at rest, and a policy runs in `felis.loop.run_loop` at 100 Hz for
 
     T = √(2h/g) + 1.0 s
 
-(the fall, the 0.5 s after touchdown that the rule judges, and a margin). A `felis.sim.drops.LandingJudge`
-in the physics sub-step hook records touchdown, any non-foot contact in the window, the tilt and waist
-height at its end, and the peak ground force; the tilt at the end of the run is kept too.
+(the fall, the 0.5 s after touchdown that the rule judges, and a margin). A `felis.sim.landing.LandingRecorder`
+in the physics sub-step hook records, each physics step, the floor contacts, the tilt and the waist height,
+and the peak ground force; `felis.scenarios.verdicts.landing_verdict` judges them (touchdown, any non-foot
+contact in the window, the tilt and waist height at its end); the tilt at the end of the run is kept too.
+The rule needs the cat's standing waist height: `standing_waist_height` measures it (it runs the ``stand``
+controller, so it lives here, not in `felis.sim`).
 
 Policies, by name: ``passive`` holds the pose the cat has at release (`make_controller("hold")`),
 ``stand`` moves to the stand pose (`make_controller("stand")`), and a file path will name a trained
@@ -26,9 +29,16 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+from felis.controllers import make_controller
 from felis.errors import ParameterError, SimulationError
 from felis.hal import Controller
-from felis.sim.drops import Drop, LandingJudge, standing_waist_height, tilt_deg
+from felis.loop import run_loop
+from felis.rotations import tilt_from_up
+from felis.scenarios.drop import Drop
+from felis.scenarios.verdicts import landing_verdict
+from felis.sim import MujocoRobot
+from felis.sim.landing import LandingRecorder
+from felis.sim.scenarios import apply_drop, set_pose
 from felis.spec import load_spec
 
 RATE_HZ = 100.0
@@ -38,7 +48,7 @@ NAMED = (*POLICIES, "rules", "shipped")
 
 
 def shipped_policy() -> Path:
-    from felis.learning.landing.nets import DEFAULT_POLICY
+    from felis.learning.landing.policy import DEFAULT_POLICY
 
     return DEFAULT_POLICY
 
@@ -53,7 +63,7 @@ def check_policy(policy: str) -> str:
     the nearest training orientation), ``shipped`` or a policy file; else a one-line ParameterError."""
     if policy in POLICIES or policy == "rules":
         return policy
-    from felis.learning.landing.nets import PolicyError, load_policy
+    from felis.learning.landing.policy import PolicyError, load_policy
 
     path = shipped_policy() if policy == "shipped" else Path(policy)
     if not path.exists():
@@ -69,8 +79,6 @@ def check_policy(policy: str) -> str:
 
 def make_policy(policy: str, drop: Drop | None = None) -> Controller:
     """A fresh controller for a policy (`check_policy` first); ``rules`` needs the drop's orientation."""
-    from felis.controllers import make_controller
-
     check_policy(policy)
     if policy in POLICIES:
         return make_controller(POLICIES[policy])
@@ -81,7 +89,7 @@ def make_policy(policy: str, drop: Drop | None = None) -> Controller:
 
         rule = nearest_rule((drop.roll_deg, drop.pitch_deg, drop.yaw_deg) if drop else (180.0, 0.0, 0.0))
         return LandingController(rule, drop_height=drop.height_m if drop else None)
-    from felis.learning.landing.nets import load_policy
+    from felis.learning.landing.policy import load_policy
 
     behaviour, _ = load_policy(shipped_policy() if policy == "shipped" else policy)
     return LandingController(behaviour, drop_height=drop.height_m if drop else None)
@@ -113,9 +121,20 @@ class LandingOutcome:
                 "final_tilt_deg": r(self.final_tilt_deg, 2)}
 
 
-def episode_duration(d: Drop, g: float = 9.81) -> float:
-    """√(2h/g) + 1.0 s (module doc)."""
-    return (2.0 * d.height_m / g) ** 0.5 + MARGIN_S
+def standing_waist_height(robot: MujocoRobot, settle_s: float = 1.5) -> float:
+    """Waist (``State.height``) of the cat at rest in its ``stand`` pose on the floor (m).
+
+    Resets the robot, poses it, sets it down with its feet 1 mm up and lets it settle under the
+    ``stand`` controller for ``settle_s``; leaves the robot armed, ready for `MujocoRobot.reset`.
+    """
+    robot.reset()
+    set_pose(robot, robot.spec.pose("stand"))
+    apply_drop(robot, Drop(0.0, 0.0, 0.0, 0.001))
+    report = run_loop(robot, make_controller("stand"), duration=settle_s, keep_armed=True).raise_if_interrupted()
+    height = report.final_state.height if report.final_state is not None else None
+    if height is None:
+        raise ParameterError(f"{robot.spec.name} has no waist height sensor (sensors.height)")
+    return float(height)
 
 
 class LandingSim:
@@ -123,8 +142,6 @@ class LandingSim:
     standing waist height once at construction."""
 
     def __init__(self, robot: str = "cat"):
-        from felis.sim import MujocoRobot
-
         self.spec = load_spec(robot)
         self.feet = tuple(self.spec.sensors.contacts)
         if not self.feet:
@@ -138,33 +155,30 @@ class LandingSim:
         """One drop episode (module doc). ``policy``: a policy name, or a controller to run as it is (e.g. a
         `felis.controllers.landing.LandingController`); ``monitors``: extra loop monitors (a video recorder,
         a motion recorder); ``duration``: the run's length (default: the fall time + `MARGIN_S`)."""
-        from felis.loop import run_loop
-        from felis.sim.scenarios import drop
-
         robot = self.robot
         controller = make_policy(policy, d) if isinstance(policy, str) else policy
         policy = policy if isinstance(policy, str) else getattr(policy, "name", type(policy).__name__)
         robot.reset()
-        info = drop(robot, d.height_m, d.roll_deg, d.pitch_deg, d.yaw_deg)
-        judge = LandingJudge(robot, self.feet, self.standing_waist_m).attach()
+        apply_drop(robot, d)
+        recorder = LandingRecorder(robot, self.feet).attach()
         diverged = False
         try:
-            run_loop(robot, controller, duration=info.fall_time + MARGIN_S if duration is None else duration,
+            run_loop(robot, controller, duration=d.fall_time + MARGIN_S if duration is None else duration,
                      rate_hz=RATE_HZ, monitors=monitors, keep_armed=True).raise_if_interrupted()
         except SimulationError:
             diverged = True
         finally:
-            judge.detach()
+            recorder.detach()
+        v = landing_verdict(recorder.truth(self.standing_waist_m))
         if diverged:  # MuJoCo reset the data: nothing after this point is the drop's
-            return LandingOutcome(d, policy, False, False, judge.touchdown_t, judge.first_body, judge.touch_body,
-                                  None, None, None, judge.peak_impact, float("nan"), "physics diverged",
+            return LandingOutcome(d, policy, False, False, v.touchdown_t, v.first_body, v.touch_body,
+                                  None, None, None, recorder.peak_impact, float("nan"), "physics diverged",
                                   ("physics diverged",), self.standing_waist_m)
-        reasons = judge.reasons()
         return LandingOutcome(
-            d, policy, judge.landed, judge.foot_only, judge.touchdown_t, judge.first_body, judge.touch_body,
-            None if judge.touch_t is None else judge.touch_t - judge.touchdown_t, judge.tilt_deg, judge.waist_m,
-            judge.peak_impact, tilt_deg(robot), "; ".join(detail for _, detail in reasons),
-            tuple(kind for kind, _ in reasons), self.standing_waist_m)
+            d, policy, v.landed, v.foot_only, v.touchdown_t, v.first_body, v.touch_body,
+            None if v.touch_t is None else v.touch_t - v.touchdown_t, v.tilt_deg, v.waist_m,
+            recorder.peak_impact, tilt_from_up(float(robot.data.xmat[robot.root_body, 8])), v.why,
+            tuple(kind for kind, _ in v.reasons), self.standing_waist_m)
 
     def close(self) -> None:
         self.robot.close()

@@ -77,7 +77,6 @@ ROOT_BODY = "upper_body"
 FEATURE_BODIES = ("head", "fl_leg", "fl_foot", "fr_leg", "fr_foot", "lower_body",
                   "hl_leg", "hl_foot", "hr_leg", "hr_foot", "tail")
 N_STATES = 8
-BIT_NAMES = ("front", "left", "above")
 
 # body j -> ((body, point), (body, point)): the vector r_j runs from the first point to the second;
 # point "origin" is the body frame's origin (MjData.xpos), "com" its centre of mass (MjData.xipos).

@@ -41,7 +41,7 @@ each leg of the path is one segment, as many whole ticks long as the faster-movi
 step with the waist below 500 mm, where the spine rule hands over to the landing rule: how far the cat
 turned face-down in the air, the paper's criterion (§6.6, Figs. 8 and 10). u_end: the upper body's
 up-axis z at the end of the 200 steps (on its feet or not, after bounces). [landed]: 1 if the drop meets
-`felis.sim.drops.landed` (feet only for 0.5 s after touchdown, tilt ≤ 30°, waist above half standing).
+`felis.scenarios.verdicts.landed` (feet only for 0.5 s after touchdown, tilt ≤ 30°, waist above half standing).
 
 **Search** (`tune_rule`): cross-entropy method over the 2·`N_WAYPOINTS` waypoint angles: `POPULATION`
 rules per generation drawn from a diagonal Gaussian (clipped to the limits), the best `ELITES` refit
@@ -104,7 +104,8 @@ import numpy as np
 
 from felis.errors import ParameterError
 from felis.files import MAX_ARRAY_BYTES, check_readable, write_atomic
-from felis.learning.landing.nets import JOINTS, LANDING_HEIGHT_MM, MAX_SPEED
+from felis.learning.landing.nets import LANDING_HEIGHT_MM
+from felis.learning.landing.policy import JOINTS, MAX_SPEED
 
 TRAINING_ORIENTATIONS: tuple[tuple[float, float, float], ...] = (
     (180.0, 0.0, 0.0),
@@ -283,7 +284,7 @@ def rollout(sim: Any, orientation: Sequence[float], policy_callable: Any, height
     behaviour), or a ready `LandingController`. Deterministic for equal inputs."""
     from felis.controllers.landing import LandingController
     from felis.learning.landing.features import MotionRecorder
-    from felis.sim.drops import Drop
+    from felis.scenarios.drop import Drop
 
     o = _orientation(orientation)
     h = _number(height_m, "drop height")
@@ -513,7 +514,7 @@ def load_samples(path: str | Path) -> list[Sample]:
 def nearest_rule(orientation: Sequence[float], path: str | Path | None = None) -> SpineRule:
     """The hand-written rule of the training orientation nearest to ``orientation`` (roll, pitch, yaw in
     degrees; nearest by the rotation angle between the two start orientations): the `rules` baseline."""
-    from felis.sim.scenarios import euler_quat
+    from felis.rotations import euler_quat
 
     samples = load_samples(path or DEFAULT_SAMPLES_PATH)
     q = euler_quat(*orientation)

@@ -1,5 +1,6 @@
 """The gait's phase, frequency and amplitude online, from the recent joint trajectory, through a trained
-periodic autoencoder (`felis.learning.phase.pae`, seed 003); it feeds the balance monitor's gait gate.
+periodic autoencoder (`felis.learning.phase.pae`, seed 003; run in numpy by `felis.learning.phase.infer`);
+it feeds the balance monitor's gait gate.
 
 **Tracking** (`phase_track`). For every frame k ≥ W − 1 of a trajectory q (T, J) the window of the last
 W frames (k − W + 1 … k) is encoded (`PaeNumpy.encode`): per channel c a phase φ_c at the window's centre,
@@ -36,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import PhaseError
-from felis.learning.phase.pae import PaeNumpy, load_pae_numpy
+from felis.learning.phase.infer import PaeNumpy, load_pae_numpy
 
 DEFAULT_WEIGHTS = Path(__file__).parents[1] / "weights" / "phase.npz"
 

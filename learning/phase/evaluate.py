@@ -35,7 +35,7 @@ import numpy as np
 
 from felis.learning.phase.data import GaitRecording, contact_frequency
 from felis.learning.phase.estimator import PhaseEstimator, _window_all, phase_track
-from felis.learning.phase.pae import PaeNumpy
+from felis.learning.phase.infer import PaeNumpy
 
 MIN_SEGMENT_S = 2.0  # s of a steady segment after its first window, to be judged
 GATES = ("clock", "phase", "none")

@@ -36,7 +36,7 @@ from felis.errors import ParameterError, PhaseError
 from felis.files import check_target, write_atomic
 from felis.learning.phase.data import GaitRecording, from_log, load_recordings
 from felis.learning.phase.estimator import DEFAULT_WEIGHTS, phase_track
-from felis.learning.phase.pae import PaeNumpy, load_pae_numpy
+from felis.learning.phase.infer import PaeNumpy, load_pae_numpy
 
 DPI = 110
 WIDTH_IN = 12.0

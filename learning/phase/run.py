@@ -24,7 +24,8 @@ from felis.files import write_atomic
 from felis.learning.phase.data import load_recordings, record_set
 from felis.learning.phase.estimator import calibrate
 from felis.learning.phase.evaluate import phase_metrics
-from felis.learning.phase.pae import load_pae_numpy, save_pae
+from felis.learning.phase.infer import load_pae_numpy
+from felis.learning.phase.pae import save_pae
 from felis.learning.phase.train import PhaseTrainConfig, evaluate_phase, train_phase
 
 

@@ -35,7 +35,6 @@ frequency, and unlike the power-weighted FFT frequency it is not pulled up by ha
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -45,15 +44,9 @@ import numpy as np
 
 from felis.errors import ParameterError, PhaseError
 from felis.learning.common.checkpoints import load_checkpoint, save_checkpoint
-from felis.learning.ik.train import _fingerprint, _stats, _TorchSettings
-from felis.learning.phase.pae import (
-    PaeConfig,
-    check_arrays,
-    fld_terms,
-    model_from_config,
-    predict_frames,
-    torch_to_arrays,
-)
+from felis.learning.common.curves import TorchSettings, fingerprint, run_epochs, stats
+from felis.learning.phase.infer import PaeConfig, check_arrays
+from felis.learning.phase.pae import fld_terms, model_from_config, predict_frames, torch_to_arrays
 
 CHECKPOINT_ID = "felis-pae-checkpoint"
 CHECKPOINT_SCHEMA = 1
@@ -238,11 +231,11 @@ def train_phase(train_trajs, val_trajs, cfg: PhaseTrainConfig, checkpoint: Path 
         seg_val = _segments(val_trajs, cfg.window, cfg.fld_steps, cfg.stride, cfg.fld_step, "validation")
         if seg_val.shape[1] != n_joints:
             raise PhaseError(f"validation trajectories have {seg_val.shape[1]} joints, training ones {n_joints}")
-    mean, std = _stats(np.concatenate(qs), (0,))
+    mean, std = stats(np.concatenate(qs), (0,))
     run_id = {"config": {k: v for k, v in asdict(cfg).items() if k != "epochs"}, "pae": pcfg.to_json(),
-              "data": _fingerprint(seg, *((seg_val,) if has_val else ()))}
+              "data": fingerprint(seg, *((seg_val,) if has_val else ()))}
 
-    with _TorchSettings(cfg.threads):
+    with TorchSettings(cfg.threads):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.seed)
             model = model_from_config(pcfg)
@@ -258,44 +251,27 @@ def train_phase(train_trajs, val_trajs, cfg: PhaseTrainConfig, checkpoint: Path 
         if resume and checkpoint is not None and Path(checkpoint).exists():
             start, hist, best = _load_checkpoint(Path(checkpoint), run_id, pcfg, model, opt, gen)
 
-        params = list(model.parameters())
         n = segs.shape[0]
-        for epoch in range(start, cfg.epochs):
-            t0 = time.perf_counter()
-            lr = cfg.lr_at(epoch)
-            for group in opt.param_groups:
-                group["lr"] = lr
-            model.train()
-            perm = torch.randperm(n, generator=gen)
-            sums = torch.zeros(2, dtype=torch.float64)
-            for i in range(0, n, cfg.batch):
-                idx = perm[i:i + cfg.batch]
-                terms = fld_terms(model, _unfold(segs[idx], cfg.window, cfg.fld_step), cfg.dt)
-                recon, fld = terms[0], (weights * terms).sum()
-                loss = recon + cfg.fld_weight * fld
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if cfg.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip, foreach=True)
-                opt.step()
-                sums += torch.stack((recon.detach(), fld.detach())).double() * idx.numel()
+
+        def batch_loss(idx):
+            terms = fld_terms(model, _unfold(segs[idx], cfg.window, cfg.fld_step), cfg.dt)
+            recon, fld = terms[0], (weights * terms).sum()
+            return recon + cfg.fld_weight * fld, torch.stack((recon.detach(), fld.detach()))
+
+        def finish(sums):
             tr_recon, tr_fld = (float(v) / n for v in sums)
             va_recon, va_fld = _losses(model, segv, cfg, weights) if has_val else (tr_recon, tr_fld)
-            train_loss, val_loss = tr_recon + cfg.fld_weight * tr_fld, va_recon + cfg.fld_weight * va_fld
-            if not (np.isfinite(train_loss) and np.isfinite(val_loss)):
-                raise PhaseError(f"phase training diverged at epoch {epoch + 1} (loss {train_loss:.3g}); lower the "
-                                 f"lr (now {cfg.lr:g}) or grad_clip")
-            for k, v in (("train", train_loss), ("val", val_loss), ("train_recon", tr_recon), ("train_fld", tr_fld),
-                         ("val_recon", va_recon), ("val_fld", va_fld), ("lr", lr),
-                         ("seconds", round(time.perf_counter() - t0, 3))):
-                hist[k].append(v)
-            if hist["best_val"] is None or val_loss < hist["best_val"]:
-                hist["best_val"], hist["best_epoch"] = val_loss, epoch + 1
-                best = {k: v.detach().clone() for k, v in model.state_dict().items()}
-            if checkpoint is not None:
-                _save_checkpoint(Path(checkpoint), run_id, epoch + 1, model, opt, gen, hist, best)
-            if progress is not None:
-                progress(epoch + 1, cfg.epochs, train_loss, val_loss)
+            return (tr_recon + cfg.fld_weight * tr_fld, va_recon + cfg.fld_weight * va_fld,
+                    (("train_recon", tr_recon), ("train_fld", tr_fld), ("val_recon", va_recon), ("val_fld", va_fld)))
+
+        def diverged(epoch: int, train_loss: float) -> Exception:
+            return PhaseError(f"phase training diverged at epoch {epoch} (loss {train_loss:.3g}); lower the "
+                              f"lr (now {cfg.lr:g}) or grad_clip")
+
+        save = None if checkpoint is None else (
+            lambda epoch, hist, best: _save_checkpoint(Path(checkpoint), run_id, epoch, model, opt, gen, hist, best))
+        best = run_epochs(model, opt, gen, n, cfg, start, hist, best, batch_loss, finish, diverged, save, progress,
+                          terms_shape=(2,))
         model.load_state_dict(best)
         model.eval()
     return model, hist

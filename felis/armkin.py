@@ -99,12 +99,6 @@ def within_limits(q: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     return np.all((q >= LOWER - tol) & (q <= UPPER + tol), axis=-1)
 
 
-def limit_violation(q: np.ndarray) -> np.ndarray:
-    """How far (rad, ≥ 0) each joint of q (..., 4) lies outside its limits."""
-    q = np.asarray(q, dtype=float)
-    return np.maximum(LOWER - q, 0.0) + np.maximum(q - UPPER, 0.0)
-
-
 def ik_closed(target: np.ndarray, phi: np.ndarray, elbow_up: np.ndarray | bool = True,
               q1_hint: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Exact IK for tool position + pitch: returns (q (..., 4), ok (...)).

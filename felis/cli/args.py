@@ -1,0 +1,116 @@
+"""What the command modules share to build their parsers: argument types, the bus options, the servo bus
+opener (`felis.drivers.ports` from the parsed arguments) and command groups with sub-commands.
+
+Every command module exposes ``register(sub)``, ``sub`` being the ``felis`` sub-parsers action (its
+parsers report errors as one line, `felis.cli.main.Parser`); a learned skill's module also exposes
+``register_train(sub)`` and ``register_eval(sub)`` for ``felis train``/``felis eval`` (`felis.cli.learn`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from felis.drivers.dynamixel.bus import SDK_BAUDS
+from felis.drivers.ports import open_ports
+from felis.errors import UsageError
+
+
+# ----------------------------------------------------------------------------- argument types
+def finite(text: str) -> float:
+    """A finite number."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if v != v or v in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
+    return v
+
+
+def size(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` of a rendered video, within 16x16…1920x1080."""
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text!r}") from None
+    if not (16 <= w <= 1920 and 16 <= h <= 1080):
+        raise argparse.ArgumentTypeError(f"size {w}x{h} outside 16x16…1920x1080")
+    return w, h
+
+
+def id_list(text: str) -> list[int]:
+    """``"1,2,5-8"`` -> [1, 2, 5, 6, 7, 8]."""
+    out: list[int] = []
+    try:
+        for part in text.split(","):
+            part = part.strip()
+            if "-" in part:
+                a, b = (int(x) for x in part.split("-", 1))
+                out.extend(range(a, b + 1))
+            elif part:
+                out.append(int(part))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected IDs like 1,2,5-8, got {text!r}") from None
+    bad = [i for i in out if not 0 <= i <= 252]
+    if bad or not out:
+        raise argparse.ArgumentTypeError(f"servo IDs must be 0…252, got {text!r}")
+    return out
+
+
+def one_id(text: str) -> int:
+    """One servo ID."""
+    found = id_list(text)
+    if len(found) != 1:
+        raise argparse.ArgumentTypeError(f"expected one servo ID, got {text!r}")
+    return found[0]
+
+
+def baud_rate(text: str) -> int:
+    """A baud rate the SDK supports: ``1000000``, ``1M``, ``57.6k``, ``57_600``."""
+    t = text.lower().replace("_", "")
+    mult = 1
+    if t.endswith("m"):
+        t, mult = t[:-1], 1_000_000
+    elif t.endswith("k"):
+        t, mult = t[:-1], 1000
+    try:
+        f = float(t) * mult
+        if not math.isfinite(f) or f != int(f):
+            raise ValueError(text)
+        v = int(f)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a baud rate: {text!r}") from None
+    if v not in SDK_BAUDS:
+        raise argparse.ArgumentTypeError(f"baud rate {v} not supported; use one of {', '.join(map(str, SDK_BAUDS))}")
+    return v
+
+
+# ----------------------------------------------------------------------------- the servo bus
+def bus_args(sp, robot_default: str | None = None) -> None:
+    """``--port``, ``--baud``, ``--robot`` (for a virtual bus), ``--json``: the operator commands' options."""
+    sp.add_argument("--port", help="serial device, or 'virtual' for a virtual bus (default $FELIS_PORT)")
+    sp.add_argument("--baud", type=baud_rate, default=1_000_000, help="baud rate (default 1000000)")
+    sp.add_argument("--robot", default=robot_default, help="robot for --port virtual (default cat)")
+    sp.add_argument("--json", action="store_true", help="print results as JSON")
+
+
+def open_bus(args, *, sim: bool = False, retries: int = 1, quiet_check: bool = True):
+    """`felis.drivers.ports.open_ports` for ``--port``/``--baud``/``--robot`` (default cat) and, where the
+    command has it, ``--imu-port``: a context manager giving `felis.drivers.ports.Ports` with the bus open."""
+    return open_ports(args.port, robot=getattr(args, "robot", None) or "cat", baud=args.baud,
+                      imu_port=getattr(args, "imu_port", None), sim=sim, retries=retries, quiet_check=quiet_check)
+
+
+# ----------------------------------------------------------------------------- command groups
+def group(sub, name: str, help: str, dest: str, metavar: str, **kw):
+    """A command with sub-commands (``felis sim drop``); without one it is a usage error. Returns the
+    group's sub-parsers action."""
+    p = sub.add_parser(name, help=help, **kw)
+    groupsub = p.add_subparsers(dest=dest, metavar=metavar)
+    p.set_defaults(func=lambda a: missing(p))
+    return groupsub
+
+
+def missing(parser: argparse.ArgumentParser) -> int:
+    raise UsageError(f"{parser.prog}: missing sub-command (see `{parser.prog} --help`)")

@@ -1,0 +1,42 @@
+"""``felis log info|plot``: a run log's summary (robot, duration, messages per topic, events) and a
+one-page PNG of its joints, commands, height and tilt (`felis.logs`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from felis.cli import output
+from felis.cli.args import group
+from felis.logs.plot import plot_log
+from felis.logs.runlog import log_info
+
+
+def register(sub) -> None:
+    """Add ``felis log info`` and ``felis log plot``."""
+    logsub = group(sub, "log", "inspect run logs (MCAP)", "log_command", "LOG_COMMAND")
+    info = logsub.add_parser("info", help="summary of a log: robot, duration, messages, events")
+    info.add_argument("file", type=Path)
+    info.add_argument("--json", action="store_true", help="print as JSON")
+    info.set_defaults(func=cmd_log_info)
+    plot = logsub.add_parser("plot", help="plot joints, commands, height and tilt to PNG")
+    plot.add_argument("file", type=Path)
+    plot.add_argument("--out", type=Path, required=True, help="PNG file to write")
+    plot.set_defaults(func=cmd_log_plot)
+
+
+def cmd_log_info(args) -> int:
+    info = log_info(args.file)
+    if args.json:
+        output.print_json(info)
+    else:
+        console = output.console()
+        for k, v in info.items():
+            console.print(f"[bold]{k}[/]: {v}")
+    return 0
+
+
+def cmd_log_plot(args) -> int:
+    out = plot_log(args.file, args.out)
+    print(f"plot: {out}")
+    return 0

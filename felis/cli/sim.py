@@ -1,0 +1,90 @@
+"""``felis sim drop|render|view``: a simulated run of a robot, dropped or not, judged, logged, rendered
+offscreen, or shown in MuJoCo's interactive viewer (needs a display).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from felis.cli.args import finite, group, size
+from felis.cli.doctor import has_display
+from felis.cli.results import episode, report
+from felis.cli.run import drop_args
+from felis.controllers import make_controller
+from felis.errors import FelisError
+from felis.loop import run_loop
+from felis.spec import load_spec
+
+
+def register(sub) -> None:
+    """Add ``felis sim drop``, ``render`` and ``view``."""
+    simsub = group(sub, "sim", "simulation: drop, render, view", "sim_command", "SIM_COMMAND")
+
+    def scenario_args(sp, need_height: bool):
+        sp.add_argument("--robot", default="cat", help="robot name or description file (default cat)")
+        sp.add_argument("--height", type=finite, required=need_height, help="drop height of the lowest point (m)")
+        sp.add_argument("--roll", type=finite, default=0.0, help="initial roll (deg)")
+        sp.add_argument("--pitch", type=finite, default=0.0, help="initial pitch (deg)")
+        sp.add_argument("--yaw", type=finite, default=0.0, help="initial yaw (deg)")
+        sp.add_argument("--controller", default="stand", help="controller during the run (default stand)")
+        sp.add_argument("--duration", type=finite, default=2.0, help="simulated seconds (default 2)")
+
+    drop = simsub.add_parser("drop", help="drop the robot and report how it lands")
+    scenario_args(drop, need_height=True)
+    drop.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
+    drop.add_argument("--video", type=Path, help="render to this file (.mp4, .gif, .png)")
+    drop.add_argument("--json", action="store_true", help="print results as JSON")
+    drop.add_argument("--servo-params", type=Path, metavar="FILE", help="servo parameters from `felis sysid`")
+    drop.set_defaults(func=cmd_sim_drop)
+
+    render = simsub.add_parser("render", help="render a run offscreen to MP4, GIF or PNG (film strip)")
+    scenario_args(render, need_height=False)
+    render.add_argument("--out", type=Path, required=True, help="output file: .mp4, .gif or .png")
+    render.add_argument("--fps", type=finite, default=30.0, help="frames per second (default 30)")
+    render.add_argument("--size", type=size, default=(640, 480), help="WIDTHxHEIGHT (default 640x480)")
+    render.add_argument("--json", action="store_true", help="print results as JSON")
+    render.set_defaults(func=cmd_sim_render)
+
+    view = simsub.add_parser("view", help="open the interactive viewer (needs a display)")
+    scenario_args(view, need_height=False)
+    view.set_defaults(func=cmd_sim_view)
+
+
+def cmd_sim_drop(args) -> int:
+    res = episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
+                  drop=(args.height, args.roll, args.pitch, args.yaw), log=args.log, video=args.video,
+                  servo_params=args.servo_params)
+    return report(args, res)
+
+
+def cmd_sim_render(args) -> int:
+    res = episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
+                  drop=drop_args(args), video=args.out, fps=args.fps, size=args.size)
+    return report(args, res)
+
+
+def cmd_sim_view(args) -> int:
+    if not has_display():
+        raise FelisError("no display here (DISPLAY/WAYLAND_DISPLAY unset): the viewer cannot open; "
+                         "use `felis sim render --out FILE.mp4` instead")
+    import mujoco.viewer  # late: MuJoCo and its viewer, only for this command
+
+    from felis.sim import MujocoRobot
+    from felis.sim.scenarios import drop
+
+    spec = load_spec(args.robot)
+    controller = make_controller(args.controller)
+    dropped = drop_args(args)
+    with MujocoRobot(spec) as robot:
+        if dropped is not None:
+            drop(robot, *dropped)
+        with mujoco.viewer.launch_passive(robot.model, robot.data) as viewer:
+
+            class _Sync:
+                def __call__(self, state, command):
+                    if not viewer.is_running():
+                        raise KeyboardInterrupt
+                    viewer.sync()
+
+            run_loop(robot, controller, duration=args.duration, clock="wall", monitors=[_Sync()])
+    return 0
