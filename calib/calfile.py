@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import CalibrationError
-from felis.files import check_readable, write_atomic
+from felis.files import check_readable, read_text, write_atomic
 from felis.servos import RAD_PER_TICK, TICKS_PER_REV
 from felis.spec import JointSpec, RobotSpec
 
@@ -291,15 +291,9 @@ def now_iso() -> str:
 def load(path: str | Path, spec: RobotSpec | None = None, *, complete: bool = True) -> CalibrationFile:
     """Read and check a calibration file; every problem is one `CalibrationError` line."""
     path = Path(path)
-    check_readable(path, "calibration file", CalibrationError)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CalibrationError(f"no calibration file at {path}") from None
-    except OSError as e:
-        raise CalibrationError(f"cannot read {path}: {e.strerror or e}") from None
-    except UnicodeDecodeError:
-        raise CalibrationError(f"{path}: not a text file (corrupt){_backup_hint(path)}") from None
+    text = read_text(path, "calibration file", CalibrationError, hint=lambda: _backup_hint(path),
+                     missing="no calibration file at {path}", directory=None,
+                     undecodable="{path}: not a text file (corrupt){hint}", unreadable="cannot read {path}: {reason}")
     try:
         data = json.loads(text)
     except json.JSONDecodeError as e:

@@ -35,11 +35,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from felis.bodymodel import quat_matrix
 from felis.controllers.balance import Assessment, BalanceMonitor
 from felis.controllers.pose import min_jerk
 from felis.errors import ParameterError
 from felis.hal import Command, Controller, State
+from felis.rotations import quat_matrix
 from felis.spec import RobotSpec
 
 REACTIONS = ("none", "brace", "crouch", "step")

@@ -17,7 +17,7 @@ import numpy as np
 
 from felis.controllers.arm_posture import DT, demo_joints
 from felis.errors import ParameterError, TrajectoryError
-from felis.files import check_readable, write_atomic
+from felis.files import read_text, write_atomic
 
 BUILTINS = ("circle", "figure8")
 
@@ -89,17 +89,8 @@ def read_trajectory_csv(path: str | Path) -> Trajectory:
     is not 0.01 s ± 10%. Returns kind ``file``, ident −1, q None.
     """
     path = Path(path)
-    check_readable(path, "trajectory file", TrajectoryError)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise TrajectoryError(f"{path}: no such trajectory file") from None
-    except IsADirectoryError:
-        raise TrajectoryError(f"{path}: is a directory, not a trajectory file") from None
-    except UnicodeDecodeError:
-        raise TrajectoryError(f"{path}: not a text CSV file") from None
-    except OSError as e:
-        raise TrajectoryError(f"{path}: cannot read trajectory file: {e.strerror or e}") from None
+    text = read_text(path, "trajectory file", TrajectoryError, undecodable="{path}: not a text CSV file",
+                     unreadable="{path}: cannot read trajectory file: {reason}")
     reader = csv.reader(io.StringIO(text))
     header = next(reader, None)
     if not header or not any(h.strip() for h in header):

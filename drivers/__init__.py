@@ -7,7 +7,9 @@ Encoder ticks exist only inside this package; everything it hands upward is SI a
 
     dynamixel/controltable.py  item name -> address, size, access, area, default, range, SI conversion
     dynamixel/protocol.py      CRC-16, byte stuffing, packet building and incremental parsing
-    dynamixel/bus.py           DynamixelBus: ping, scan, read/write by name, sync/fast-sync/bulk, retries, guards
+    dynamixel/bus.py           DynamixelBus: ping, scan, read/write by name, retries, guards
+    dynamixel/port.py          the bus's serial port: exclusive open, its holder, timeouts, the SDK busy flag
+    dynamixel/group.py         sync / fast-sync / bulk transfers, per-servo counters
     dynamixel/robot.py         DynamixelRobot: the HAL on a bus (+ IMU)
     virtual/                   VirtualServo, dispatch, FaultPlan, VirtualBus (pty server), spawn (child process)
     imu/                       RVC frame codec and parser, ImuReader, RvcEmulator, apply_mounting, SensorMount

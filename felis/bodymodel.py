@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from felis.rotations import quat_matrix
+
 
 @dataclass(frozen=True)
 class BodyModel:
@@ -155,15 +157,3 @@ def low_matrix(body: np.ndarray, point: np.ndarray, n_bodies: int) -> np.ndarray
     M[np.arange(len(body)), body, :3] = point
     M[np.arange(len(body)), body, 3] = 1.0
     return M.reshape(len(body), -1)
-
-
-def quat_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (w, x, y, z) (normalised here)."""
-    w, x, y, z = np.asarray(q, dtype=float).tolist()  # Python floats: numpy scalars are slow here
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])

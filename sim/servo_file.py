@@ -24,7 +24,7 @@ from dataclasses import asdict, fields
 from pathlib import Path
 
 from felis.errors import ServoParamsError
-from felis.files import check_readable, write_atomic
+from felis.files import check_fields, read_text, write_atomic
 from felis.sim.servo import ServoParams
 from felis.spec import RobotSpec
 
@@ -61,13 +61,8 @@ def save_servo_params(path: str | os.PathLike, robot: str, params: Mapping[str, 
 def load_servo_params(path: str | os.PathLike, spec: RobotSpec) -> dict[str, ServoParams]:
     """Read a servo parameter file for ``spec``'s robot: ``{joint: ServoParams}`` (module doc)."""
     path = Path(path)
-    check_readable(path, "servo parameter file", ServoParamsError)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ServoParamsError(f"{path}: no such servo parameter file (make one with `felis sysid`)") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ServoParamsError(f"{path}: cannot read: {getattr(e, 'strerror', None) or e}") from None
+    text = read_text(path, "servo parameter file", ServoParamsError, hint=" (make one with `felis sysid`)",
+                     directory=None, unreadable="{path}: cannot read: {reason}")
     try:
         doc = json.loads(text, parse_constant=lambda c: float("nan"))
     except json.JSONDecodeError as e:
@@ -93,12 +88,8 @@ def load_servo_params(path: str | os.PathLike, spec: RobotSpec) -> dict[str, Ser
 
 
 def _check_joint(path: Path, name: str, values: Mapping) -> None:
-    missing = [k for k in FIELDS if k not in values]
-    if missing:
-        raise ServoParamsError(f"{path}: joints.{name}: missing {', '.join(missing)}")
-    extra = sorted(set(values) - set(FIELDS))
-    if extra:
-        raise ServoParamsError(f"{path}: joints.{name}: unknown field {extra[0]!r}; fields: {', '.join(FIELDS)}")
+    check_fields(values, FIELDS, f"{path}: joints.{name}", ServoParamsError,
+                 unknown="{where}: unknown field {field!r}; fields: {fields}")
     for k in FIELDS:
         v = values[k]
         if isinstance(v, bool) or not isinstance(v, int | float):

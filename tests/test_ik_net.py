@@ -14,9 +14,10 @@ import pytest
 import torch
 
 from felis.errors import ParameterError, WeightsError
+from felis.learning.common.torchstate import torch_to_arrays
 from felis.learning.ik import net as ik_net
 from felis.learning.ik.infer import NetSpec, NumpyNet, load_arrays, load_weights, lstm_params, mlp_width, param_count
-from felis.learning.ik.net import arrays_to_torch, model_from_spec, save_weights, torch_to_arrays
+from felis.learning.ik.net import arrays_to_torch, model_from_spec, save_weights
 from felis.learning.ik.train import TrainConfig, train_net
 
 MP = NetSpec("lstm", 3, hidden=16, layers=2, n_out=6, name="mp", in_offsets=(-10, -5, 0), out_offsets=(5, 10))

@@ -2,6 +2,10 @@
 
 One object per serial port. Items are addressed by name (``bus.read(3, "present_position")``) in SI
 units through the control tables of :mod:`felis.drivers.dynamixel.controltable`, or raw with ``raw=True``.
+`DynamixelBus` inherits the serial port (exclusive open, reply timeouts, the SDK's busy flag) from
+:mod:`felis.drivers.dynamixel.port` and the group transfers (sync, fast sync and bulk reads, sync writes,
+per-servo counters) from :mod:`felis.drivers.dynamixel.group`; this module holds the unicast transactions
+with retries, discovery (ping, scan), items by name and the guards.
 
 What this layer adds to the SDK (``shared/reference/dynamixel.md``):
 
@@ -31,27 +35,16 @@ Hardware Error Status (addr 70) to names. Status errors on writes raise :class:`
 
 from __future__ import annotations
 
-import contextlib
-import errno
-import fcntl
-import glob
-import math
-import os
-import stat
-import termios
 import threading
-import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import dynamixel_sdk as sdk
-import serial
 
 from felis.drivers.dynamixel import protocol as P
 from felis.drivers.dynamixel.controltable import (
     BAUD_RATES,
     EEPROM_END,
-    FAST_SYNC_READ_MIN_FIRMWARE,
     ControlTable,
     Item,
     address,
@@ -59,8 +52,18 @@ from felis.drivers.dynamixel.controltable import (
     decode_hardware_error,
     model_name,
 )
+from felis.drivers.dynamixel.group import P_ID, BlockRead, GroupTransfers, ServoStats, status_params
+from felis.drivers.dynamixel.port import (
+    SDK_BAUDS,
+    BusPort,
+    candidate_ports,
+    check_port_path,
+    latency_fix,
+    latency_timer_ms,
+    lock_port,
+    port_holders,
+)
 from felis.errors import (
-    CommError,
     CorruptReplyError,
     NoReplyError,
     ParameterError,
@@ -68,26 +71,9 @@ from felis.errors import (
     ServoStatusError,
 )
 
-SDK_BAUDS = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)  # both SDK and servo support
 _TORQUE_ENABLE = address("torque_enable")
 _HW_ERROR = address("hardware_error_status")
 _LED = address("led")
-
-
-
-
-
-
-@dataclass
-class ServoStats:
-    """Per-servo communication counters since the bus was opened."""
-
-    ok: int = 0
-    timeouts: int = 0
-    corrupt: int = 0
-    retries: int = 0
-    status_errors: int = 0
-    alerts: int = 0
 
 
 @dataclass(frozen=True)
@@ -104,141 +90,7 @@ class Found:
         return model_name(self.model_number)
 
 
-@dataclass
-class BlockRead:
-    """Result of a block read: ``data[id]`` is the bytes read, or None when that servo is stale."""
-
-    data: dict[int, bytes | None]
-    errors: dict[int, int] = field(default_factory=dict)  # status error byte per servo that answered
-
-    @property
-    def stale(self) -> list[int]:
-        return [i for i, d in self.data.items() if d is None]
-
-
-def check_port_path(port: str) -> None:
-    """Raise PortError with the fix when ``port`` does not exist, is not a device, or lacks permission."""
-    try:
-        st = os.stat(port)
-    except FileNotFoundError:
-        raise PortError(f"serial port {port} does not exist (is the adapter plugged in? `felis find-port` "
-                        "lists candidates)") from None
-    except OSError as e:
-        raise PortError(f"serial port {port}: {e.strerror}") from None
-    if not stat.S_ISCHR(st.st_mode):
-        raise PortError(f"{port} is not a serial device")
-    if not os.access(port, os.R_OK | os.W_OK):
-        raise PortError(f"no permission to open {port}: add yourself to its group "
-                        f"(`sudo usermod -aG dialout $USER`, then log in again) or run with access to it")
-
-
-def latency_timer_ms(port: str) -> int | None:
-    """The FTDI latency timer of a USB serial port (sysfs), or None when it has none (pty, ACM)."""
-    name = os.path.basename(os.path.realpath(port))
-    path = f"/sys/bus/usb-serial/devices/{name}/latency_timer"
-    try:
-        with open(path) as f:
-            return int(f.read().strip())
-    except (OSError, ValueError):
-        return None
-
-
-def latency_fix(port: str, ms: int) -> str | None:
-    """The fix for a slow FTDI latency timer, or None when it is already 1 ms or less."""
-    if ms <= 1:
-        return None
-    name = os.path.basename(os.path.realpath(port))
-    return (f"FTDI latency timer on {port} is {ms} ms (caps a request/reply loop near {1000 // (ms + 1)} Hz); fix: "
-            f"echo 1 | sudo tee /sys/bus/usb-serial/devices/{name}/latency_timer  (permanent: udev rule "
-            'ACTION=="add", SUBSYSTEM=="usb-serial", DRIVER=="ftdi_sio", ATTR{latency_timer}="1")')
-
-
-def _is_pty(port: str) -> bool:
-    real = os.path.realpath(port)
-    return real.startswith("/dev/pts/") or real.startswith("/dev/pty")
-
-
-def port_holders(port: str) -> list[str]:
-    """Other processes that hold ``port``, as ``"PID 123 (felis monitor …)"`` (best effort, Linux /proc).
-
-    The holders of its lock (``/proc/locks``) when there are any; else every process with it open."""
-    real = os.path.realpath(port)
-    me = os.getpid()
-    pids = [p for p in _lock_holders(real) if p != me] or [p for p in _openers(real) if p != me]
-    out = []
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                cmd = f.read(4096).replace(b"\0", b" ").decode(errors="replace").strip()
-        except OSError:
-            cmd = "?"
-        out.append(f"PID {pid} ({cmd[:100]})")
-    return out
-
-
-def _lock_holders(real: str) -> list[int]:
-    try:
-        st = os.stat(real)
-        with open("/proc/locks") as f:
-            lines = f.read(1 << 20).splitlines()
-    except OSError:
-        return []
-    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
-    pids = []
-    for line in lines:
-        parts = line.split()
-        if "->" in parts:  # a waiter, not a holder
-            continue
-        if len(parts) >= 6 and parts[1] == "FLOCK" and parts[5].lower() == key.lower() and parts[4].isdigit():
-            pids.append(int(parts[4]))
-    return pids
-
-
-def _openers(real: str) -> list[int]:
-    pids = []
-    for pid_dir in glob.glob("/proc/[0-9]*"):
-        try:
-            fds = os.listdir(f"{pid_dir}/fd")
-        except OSError:
-            continue
-        for fd in fds:
-            try:
-                if os.readlink(f"{pid_dir}/fd/{fd}") == real:
-                    pids.append(int(os.path.basename(pid_dir)))
-                    break
-            except OSError:
-                continue
-    return pids
-
-
-def in_use_message(port: str) -> str:
-    holders = port_holders(port)
-    who = f" by {', '.join(holders)}" if holders else " by another program"
-    return (f"{port} is in use{who}: two programs on one bus corrupt each other's replies; stop the other one "
-            "first (another felis, Dynamixel Wizard, a serial console)")
-
-
-def lock_port(port: str) -> int:
-    """Take the exclusive advisory lock of a serial device; returns the descriptor that holds it.
-
-    PortError naming the holder when another program has it locked (or opened it with TIOCEXCL)."""
-    try:
-        fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
-    except OSError as e:
-        if e.errno == errno.EBUSY:
-            raise PortError(in_use_message(port)) from None
-        raise PortError(f"cannot open {port}: {e.strerror}") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as e:
-        os.close(fd)
-        if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-            raise PortError(in_use_message(port)) from None
-        raise PortError(f"cannot lock {port}: {e.strerror}") from None
-    return fd
-
-
-class DynamixelBus:
+class DynamixelBus(GroupTransfers, BusPort):
     """A Dynamixel Protocol 2.0 bus on one serial port.
 
     Args:
@@ -277,144 +129,7 @@ class DynamixelBus:
         self.transactions = 0
         self.failed_transactions = 0
 
-    # ------------------------------------------------------------------ port
-    @property
-    def is_open(self) -> bool:
-        return self._port is not None and self._port.is_open
-
-    def open(self) -> DynamixelBus:
-        """Open the port exclusively; PortError (one line, with the fix) when it cannot be.
-
-        Exclusive: before the SDK touches the device (pyserial's open reconfigures the line and flushes
-        its input queue, which would steal another program's replies), an ``flock(LOCK_EX)`` is taken on
-        it, as pyserial's ``exclusive=True`` does; a second felis program, or any client that locks the
-        same way, is refused with one line naming the holder. ``TIOCEXCL`` is then set on the SDK's
-        descriptor, so other non-root programs cannot open the device at all while felis has it.
-        """
-        if self.is_open:
-            return self
-        check_port_path(self.port_name)
-        self._lock_fd = lock_port(self.port_name)
-        port = sdk.PortHandler(self.port_name)
-        port.baudrate = self.baud
-        try:
-            port.openPort()
-        except (serial.SerialException, OSError) as e:
-            self._unlock()
-            msg = str(e)
-            if "busy" in msg.lower() or getattr(e, "errno", None) == errno.EBUSY:
-                raise PortError(in_use_message(self.port_name)) from None
-            raise PortError(f"cannot open {self.port_name}: {msg}") from None
-        with contextlib.suppress(OSError, AttributeError, termios.error):
-            fcntl.ioctl(port.ser.fileno(), termios.TIOCEXCL)
-        self._port = port
-        pty = _is_pty(self.port_name)
-        lat = latency_timer_ms(self.port_name)
-        self._latency_ms = 0.0 if pty else float(lat if lat is not None else sdk.port_handler.LATENCY_TIMER)
-        if self._margin_ms is None:
-            self._margin_ms = _env_margin_ms() if os.environ.get("FELIS_TIMEOUT_MARGIN_MS") else 10.0 if pty else 4.0
-        return self
-
-    def close(self) -> None:
-        with self._lock:
-            if self._port is not None:
-                try:
-                    if self._port.ser is not None:
-                        with contextlib.suppress(OSError, AttributeError, termios.error):
-                            fcntl.ioctl(self._port.ser.fileno(), termios.TIOCNXCL)
-                        self._port.closePort()
-                except (serial.SerialException, OSError):
-                    pass
-                self._port = None
-            self._unlock()
-
-    def _unlock(self) -> None:
-        if self._lock_fd is not None:
-            with contextlib.suppress(OSError):
-                os.close(self._lock_fd)  # closing the descriptor releases the flock
-            self._lock_fd = None
-
-    def __enter__(self) -> DynamixelBus:
-        return self.open()
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def set_baud(self, baud: int) -> None:
-        """Switch the host side to another baud rate (the servos' own rate is the ``baud_rate`` item)."""
-        if baud not in SDK_BAUDS:
-            raise ParameterError(f"baud rate {baud} not supported; use one of {', '.join(map(str, SDK_BAUDS))}")
-        self.baud = baud
-        if self._port is not None:
-            with self._lock:
-                self._call(lambda: self._port.setBaudRate(baud))
-
-    def listen(self, seconds: float, limit: int = 4096) -> bytes:
-        """Bytes that arrive on the port within ``seconds`` without being asked for (a Dynamixel bus sends
-        none): the diagnosis of a port that is something else, e.g. the IMU's."""
-        port = self._need_port()
-        out = bytearray()
-        deadline = time.monotonic() + seconds
-        with self._lock:
-            while time.monotonic() < deadline and len(out) < limit:
-                chunk = self._call(lambda: port.readPort(limit - len(out)))
-                if chunk:
-                    out.extend(chunk)
-                else:
-                    time.sleep(0.005)
-        return bytes(out)
-
-    def check_quiet(self, seconds: float = 0.05) -> None:
-        """CommError when the port sends data unprompted (a Dynamixel bus is silent until asked): the operator
-        gave the IMU's port, or another device's, as the bus; the message names a BNO08x when it is one."""
-        data = self.listen(seconds)
-        if len(data) < 8:
-            return
-        from felis.drivers.imu import looks_like_rvc
-
-        what = "BNO08x UART-RVC IMU frames" if looks_like_rvc(data) else f"{len(data)} bytes that no one asked for"
-        raise CommError(f"{self.port_name} sends data unprompted ({what}); a Dynamixel bus is silent until asked: "
-                        "are --port and --imu-port swapped?")
-
-    def latency_warning(self) -> str | None:
-        """The FTDI latency-timer fix for this port, or None when it is fine (or not an FTDI)."""
-        ms = latency_timer_ms(self.port_name)
-        return None if ms is None else latency_fix(self.port_name, ms)
-
-    # ------------------------------------------------------------------ low level
-    def _need_port(self) -> sdk.PortHandler:
-        if self._port is None:
-            raise PortError(f"{self.port_name} is not open")
-        return self._port
-
-    def _call(self, fn: Callable):
-        """Run an SDK call; turn a vanished port into PortError and clear the busy flag afterwards."""
-        port = self._need_port()
-        if port.is_using:  # left set by an earlier failed or interrupted transaction
-            port.is_using = False
-            self.busy_recoveries += 1
-        try:
-            return fn()
-        except (serial.SerialException, OSError, termios.error) as e:
-            # pyserial raises SerialException (or OSError) when the device vanishes
-            self.close()
-            raise PortError(f"{self.port_name} stopped working ({e}); check the cable and power, then reconnect") \
-                from None
-        finally:
-            if self._port is not None:
-                self._port.is_using = False
-
-    def _timeout_ms(self, tx_bytes: int, rx_bytes: int, n_replies: int) -> float:
-        wire = (tx_bytes + rx_bytes) * 10_000.0 / self.baud
-        delays = n_replies * (self.return_delay_us / 1000.0 + 0.05)
-        return wire + delays + 2.0 * (self._latency_ms or 0.0) + (self._margin_ms or 0.0)
-
-    def _stats(self, dxl_id: int) -> ServoStats:
-        s = self.stats.get(dxl_id)
-        if s is None:
-            s = self.stats[dxl_id] = ServoStats()
-        return s
-
+    # ------------------------------------------------------------------ transactions
     def _transact(self, txpacket: list[int], expect_id: int | None, rx_len: int) -> tuple[list[int] | None, int]:
         """Send one instruction; wait for the status of ``expect_id`` (None: no reply expected).
 
@@ -455,7 +170,7 @@ class DynamixelBus:
             pkt, res = self._transact(list(txpacket), dxl_id, 11 + rx_data)
             if res == sdk.COMM_SUCCESS:
                 err = pkt[8]
-                data = _params(pkt)
+                data = status_params(pkt)
                 if len(data) < rx_data and not err & 0x7F:
                     st.corrupt += 1
                     last = sdk.COMM_RX_CORRUPT
@@ -476,6 +191,7 @@ class DynamixelBus:
                                f"(missing, powered off, or at another baud rate: `felis scan` finds it)")
         raise CorruptReplyError(f"servo {dxl_id}: corrupt reply to {what} ({self._ph.getTxRxResult(last)}); "
                                 "check wiring, termination and baud rate")
+
 
     # ------------------------------------------------------------------ discovery
     def ping(self, dxl_id: int, retries: int | None = None) -> Found:
@@ -545,6 +261,7 @@ class DynamixelBus:
         if progress:
             progress(steps, steps, "done")
         return found
+
 
     # ------------------------------------------------------------------ items
     def table(self, dxl_id: int) -> ControlTable:
@@ -625,6 +342,7 @@ class DynamixelBus:
             raise ParameterError(f"servo {dxl_id}: {what} is in EEPROM and can only be written with torque off "
                                  f"(`felis torque off --id {dxl_id}`)")
 
+
     # ------------------------------------------------------------------ operations
     def torque(self, ids: Iterable[int], on: bool) -> None:
         """Torque Enable for several servos in one sync write."""
@@ -654,196 +372,6 @@ class DynamixelBus:
                 out.append((i, rdt * 2e-6, f"felis torque off --id {i} && felis write {i} return_delay_time 0 --raw"))
         return out
 
-    # ------------------------------------------------------------------ group transfers
-    def sync_write(self, addr: int, length: int, data: dict[int, bytes]) -> None:
-        """One SYNC_WRITE of ``length`` bytes at ``addr`` (no replies)."""
-        if not data:
-            return
-        param: list[int] = []
-        for i, d in data.items():
-            if len(d) != length:
-                raise ParameterError(f"sync write: {len(d)} bytes for servo {i}, expected {length}")
-            param.append(i)
-            param.extend(d)
-        port = self._need_port()
-        with self._lock:
-            self.transactions += 1
-            res = self._call(lambda: self._ph.syncWriteTxOnly(port, addr, length, param, len(param)))
-        if res != sdk.COMM_SUCCESS:
-            self.failed_transactions += 1
-            raise PortError(f"sync write failed on {self.port_name}: {self._ph.getTxRxResult(res)}")
-
-    def fast_sync_ok(self, ids: Iterable[int]) -> bool:
-        """True when every servo's firmware (from ping) has Fast Sync Read."""
-        return self.use_fast_sync_read and all(self.firmware.get(i, 0) >= FAST_SYNC_READ_MIN_FIRMWARE for i in ids)
-
-    def sync_read(self, ids: list[int], addr: int, length: int, *, fast: bool | None = None,
-                  retries: int | None = None) -> BlockRead:
-        """Read ``length`` bytes at ``addr`` from every servo in one transaction.
-
-        Servos that did not answer (or whose reply was corrupt or short) get ``None``; they are
-        retried up to ``retries`` times with a plain sync read of just them.
-        """
-        if not ids:
-            return BlockRead({})
-        fast = self.fast_sync_ok(ids) if fast is None else fast
-        out = BlockRead({i: None for i in ids})
-        todo = list(ids)
-        tries = 1 + (self.retries if retries is None else retries)
-        for attempt in range(tries):
-            if attempt:
-                for i in todo:
-                    self._stats(i).retries += 1
-            got = self._fast_sync_read(todo, addr, length) if fast and attempt == 0 else \
-                self._sync_read(todo, addr, length)
-            for i, (err, d) in got.items():
-                out.data[i] = d
-                out.errors[i] = err
-            todo = [i for i in todo if out.data[i] is None]
-            if not todo:
-                break
-        return out
-
-    def _sync_read(self, ids: list[int], addr: int, length: int) -> dict[int, tuple[int, bytes]]:
-        port, ph = self._need_port(), self._ph
-        n = len(ids)
-        reply_len = 11 + length
-
-        def run():
-            res = ph.syncReadTx(port, addr, length, list(ids), n, False)
-            if res != sdk.COMM_SUCCESS:
-                return {}, res
-            port.setPacketTimeoutMillis(self._timeout_ms(14 + n, n * reply_len, n))
-            return self._collect({i: length for i in ids}), sdk.COMM_SUCCESS
-
-        with self._lock:
-            self.transactions += 1
-            got, res = self._call(run)
-        self._account(ids, got)
-        if res != sdk.COMM_SUCCESS:
-            self.failed_transactions += 1
-        return got
-
-    def _fast_sync_read(self, ids: list[int], addr: int, length: int) -> dict[int, tuple[int, bytes]]:
-        port, ph = self._need_port(), self._ph
-        n = len(ids)
-        seg = length + 4
-
-        def run():
-            res = ph.syncReadTx(port, addr, length, list(ids), n, True)
-            if res != sdk.COMM_SUCCESS:
-                return {}, res
-            port.setPacketTimeoutMillis(self._timeout_ms(14 + n, 8 + n * seg, n))
-            pkt, res = ph.rxPacket(port, True)
-            if res != sdk.COMM_SUCCESS:
-                return {}, res
-            got: dict[int, tuple[int, bytes]] = {}
-            body = pkt[8:-2] + [0, 0]  # the last segment's CRC is the packet CRC (already checked)
-            for k in range(min(n, len(body) // seg)):
-                s = body[k * seg: (k + 1) * seg]
-                if s[1] in ids:
-                    got[s[1]] = (s[0], bytes(s[2: 2 + length]))
-            return got, sdk.COMM_SUCCESS
-
-        with self._lock:
-            self.transactions += 1
-            got, res = self._call(run)
-        if res != sdk.COMM_SUCCESS:
-            self.failed_transactions += 1
-            # one packet carried every servo's reply: each was lost, to a time-out or a corrupt packet
-            lost = "timeouts" if res == sdk.COMM_RX_TIMEOUT else "corrupt"
-            for i in ids:
-                st = self._stats(i)
-                setattr(st, lost, getattr(st, lost) + 1)
-            return {}  # the caller retries these servos with a plain sync read
-        self._account(ids, got)
-        return got
-
-    def _collect(self, lengths: dict[int, int]) -> dict[int, tuple[int, bytes]]:
-        """Receive one status per servo until all answered or the timeout passed; match by ID.
-
-        Returns {id: (error byte, data)}; a corrupt packet leaves its servo pending."""
-        port, ph = self._port, self._ph
-        got: dict[int, tuple[int, bytes]] = {}
-        pending = set(lengths)
-        for _ in range(3 * len(lengths)):
-            pkt, res = ph.rxPacket(port, False)
-            if res == sdk.COMM_RX_TIMEOUT:
-                break
-            if res != sdk.COMM_SUCCESS:
-                continue
-            i = pkt[P_ID]
-            d = _params(pkt)
-            if i in pending and len(d) >= lengths[i]:
-                got[i] = (pkt[8], bytes(d[: lengths[i]]))
-                pending.discard(i)
-                if not pending:
-                    break
-        return got
-
-    def _account(self, ids: list[int], got: dict[int, tuple[int, bytes]]) -> None:
-        for i in ids:
-            st = self._stats(i)
-            r = got.get(i)
-            if r is None:
-                st.timeouts += 1
-                continue
-            st.ok += 1
-            if r[0] & P.ALERT:
-                st.alerts += 1
-            if r[0] & 0x7F:
-                st.status_errors += 1
-
-    def bulk_read(self, reads: dict[int, tuple[int, int]]) -> BlockRead:
-        """BULK_READ: a different (addr, length) per servo; stale servos get None."""
-        if not reads:
-            return BlockRead({})
-        port, ph = self._need_port(), self._ph
-        param: list[int] = []
-        for i, (addr, length) in reads.items():
-            param += [i, addr & 0xFF, addr >> 8, length & 0xFF, length >> 8]
-        rx = sum(11 + ln for _, ln in reads.values())
-
-        def run():
-            res = ph.bulkReadTx(port, param, len(param), False)
-            if res != sdk.COMM_SUCCESS:
-                return {}, res
-            port.setPacketTimeoutMillis(self._timeout_ms(10 + len(param), rx, len(reads)))
-            return self._collect({i: ln for i, (_, ln) in reads.items()}), sdk.COMM_SUCCESS
-
-        with self._lock:
-            self.transactions += 1
-            got, _ = self._call(run)
-        self._account(list(reads), got)
-        out = BlockRead({i: None for i in reads})
-        for i, (err, d) in got.items():
-            out.data[i], out.errors[i] = d, err
-        return out
-
-
-P_ID = 4  # index of the ID byte in a packet
-
-
-def _params(pkt: list[int]) -> list[int]:
-    """Status parameters (after the error byte), by the LEN field.
-
-    Not ``pkt[9:-2]``: after removing byte stuffing the SDK leaves the list as long as the stuffed
-    packet (its tail repeats), so only LEN, which it does update, tells where the parameters end.
-    """
-    n = (pkt[5] | pkt[6] << 8) - 4  # LEN counts INST, ERR, params, CRC
-    return pkt[9: 9 + max(n, 0)]
-
-
-def _env_margin_ms() -> float:
-    text = os.environ["FELIS_TIMEOUT_MARGIN_MS"]
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not (math.isfinite(v) and 0 <= v <= 1000):
-        raise ParameterError(f"FELIS_TIMEOUT_MARGIN_MS must be 0…1000 (ms), got {text!r}")
-    return v
-
 
 def _check_id(dxl_id: int) -> None:
     if not isinstance(dxl_id, int) or not 0 <= dxl_id <= P.MAX_ID:
@@ -859,12 +387,6 @@ def baud_code(table: ControlTable, bps: int) -> int:
     raise ParameterError(f"{table.model} has no {bps} bps; it supports {rates}")
 
 
-def candidate_ports() -> list[str]:
-    """USB serial devices that might hold a Dynamixel adapter."""
-    return sorted(set(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*") + glob.glob("/dev/serial/by-id/*")))
-
-
 __all__ = ["DynamixelBus", "PortError", "NoReplyError", "CorruptReplyError", "ServoStatusError", "ServoStats",
            "Found", "BlockRead", "SDK_BAUDS", "BAUD_RATES", "baud_code", "check_port_path", "latency_timer_ms",
            "latency_fix", "candidate_ports", "lock_port", "port_holders"]
-

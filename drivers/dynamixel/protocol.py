@@ -20,6 +20,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from felis.drivers.framing import skip_to_header
+
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
 MAX_ID = 0xFC
@@ -139,20 +141,10 @@ class PacketReader:
         buf += data
         out: list[Packet] = []
         while True:
-            i = buf.find(HEADER)
-            if i < 0:
-                # keep a possible header prefix at the end
-                keep = 0
-                for k in (3, 2, 1):
-                    if len(buf) >= k and buf[-k:] == HEADER[:k]:
-                        keep = k
-                        break
-                self.dropped += len(buf) - keep
-                del buf[: len(buf) - keep]
+            skipped, found = skip_to_header(buf, HEADER)  # a possible header prefix at the end is kept
+            self.dropped += skipped
+            if not found:
                 return out
-            if i:
-                self.dropped += i
-                del buf[:i]
             if len(buf) < 7:
                 return out
             n = buf[5] | buf[6] << 8

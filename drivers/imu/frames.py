@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from felis.drivers.framing import skip_to_header
 from felis.rotations import quat_from_ypr
 
 HEADER = b"\xaa\xaa"
@@ -157,12 +158,10 @@ class RvcParser:
         buf += data
         out: list[RvcFrame] = []
         while True:
-            start = buf.find(HEADER)
-            if start < 0:
-                keep = 1 if buf[-1:] == HEADER[:1] else 0  # a lone trailing AA may start a header
-                self._drop(len(buf) - keep)
+            skipped, found = skip_to_header(buf, HEADER)  # a lone trailing AA may start a header: kept
+            self.dropped_bytes += skipped
+            if not found:
                 return out
-            self._drop(start)
             if len(buf) < FRAME_LEN:
                 return out
             if checksum(buf[2:18]) != buf[18]:

@@ -5,7 +5,9 @@ device) and talks to the servos exactly as through a USB adapter (``shared/refer
 
     memory.py     the control-table addresses the emulator acts on, write plans, hardware error bits
     packets.py    status packets (cached CRC prefix), the fast-read packet, instruction groups
-    servo.py      VirtualServo: memory, instruction rules, Bus Watchdog, dynamics (the servo model); Mount
+    servo.py      VirtualServo: control-table memory, hardware errors (the servo model: instructions.py, horn.py)
+    instructions.py  the instruction rules: who answers, READ/WRITE checks, REBOOT, FACTORY_RESET, …
+    horn.py       the horn: position frame, standalone dynamics, Bus Watchdog; Mount
     dispatch.py   one instruction packet -> the replies of the servos on the wire (collisions, group reads)
     faultplan.py  FaultPlan, parse_fault_plan: the faults a bus injects, and their spec text
     server.py     VirtualBus: the pty server (wire time, faults, counters), for_robot; client_baud

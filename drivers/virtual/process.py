@@ -247,8 +247,13 @@ def serve(bus: VirtualBus, summary_line: str) -> int:
     return 0
 
 
-def summary(bus: VirtualBus, options: Mapping[str, object]) -> str:
-    """One line: robot, servos, baud, backing, timing, faults (as ``felis virtual-bus`` prints it)."""
+def summary(bus: VirtualBus, options: Mapping[str, object], *, imu_mount_text: str | None = None,
+            imu_drift_text: str | None = None) -> str:
+    """One line: robot, servos, baud, backing, timing, faults (as ``felis virtual-bus`` prints it).
+
+    ``imu_mount_text`` (roll,pitch,yaw degrees) and ``imu_drift_text`` (rad/s), when given, are printed as
+    written instead of the numbers in ``options``: ``felis virtual-bus`` echoes its arguments.
+    """
     servos = bus.servos
     models = sorted({s.model for s in servos})
     ids = sorted(s.id for s in servos)
@@ -259,10 +264,14 @@ def summary(bus: VirtualBus, options: Mapping[str, object]) -> str:
     if options.get("servo_params"):
         backing += f" with servo parameters from {options['servo_params']}"
     if options.get("imu_mount") is not None:
-        yaw, pitch, roll = ypr_from_quat(options["imu_mount"])
-        backing += f", IMU mounted at roll,pitch,yaw {','.join(f'{math.degrees(a):.12g}' for a in (roll, pitch, yaw))}°"
+        if imu_mount_text is None:
+            yaw, pitch, roll = ypr_from_quat(options["imu_mount"])
+            imu_mount_text = ",".join(f"{math.degrees(a):.12g}" for a in (roll, pitch, yaw))
+        backing += f", IMU mounted at roll,pitch,yaw {imu_mount_text}°"
     if options.get("imu_drift") is not None:
-        backing += f", IMU drifting {','.join(repr(float(v)) for v in options['imu_drift'])} rad/s"
+        if imu_drift_text is None:
+            imu_drift_text = ",".join(repr(float(v)) for v in options["imu_drift"])
+        backing += f", IMU drifting {imu_drift_text} rad/s"
     drop = options.get("drop")
     if drop is not None:
         backing += (f", held {drop[0]:g} m up at roll {drop[1]:g}° pitch {drop[2]:g}° yaw {drop[3]:g}° "

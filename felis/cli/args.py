@@ -92,7 +92,27 @@ def bus_args(sp, robot_default: str | None = None) -> None:
     sp.add_argument("--port", help="serial device, or 'virtual' for a virtual bus (default $FELIS_PORT)")
     sp.add_argument("--baud", type=baud_rate, default=1_000_000, help="baud rate (default 1000000)")
     sp.add_argument("--robot", default=robot_default, help="robot for --port virtual (default cat)")
+    json_option(sp)
+
+
+def json_option(sp) -> None:
+    """``--json``: print the results as JSON (`felis.cli.output`) instead of text."""
     sp.add_argument("--json", action="store_true", help="print results as JSON")
+
+
+def servo_command(sub, name: str, help: str, func) -> argparse.ArgumentParser:
+    """A command on one servo: the bus options (`bus_args`), then the servo's ``id``; ``func`` runs it. Returns
+    the parser, for the command's own arguments."""
+    p = sub.add_parser(name, help=help)
+    bus_args(p)
+    p.add_argument("id", type=one_id)
+    p.set_defaults(func=func)
+    return p
+
+
+def dry_run(p) -> None:
+    """``--dry-run``: a command that writes checks everything and writes nothing."""
+    p.add_argument("--dry-run", action="store_true", help="check everything, write nothing")
 
 
 def open_bus(args, *, sim: bool = False, retries: int = 1, quiet_check: bool = True):

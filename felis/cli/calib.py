@@ -14,7 +14,7 @@ from pathlib import Path
 from rich.table import Table
 
 from felis.cli import output
-from felis.cli.args import baud_rate, open_bus
+from felis.cli.args import baud_rate, json_option, open_bus
 from felis.errors import CalibrationError, ParameterError
 
 
@@ -294,7 +294,7 @@ def register(sub) -> None:
         sp.add_argument("--id", required=need_id, help="the robot's id: names its calibration file")
         sp.add_argument("--file", help="calibration file path (default: the config directory, by robot and id)")
         sp.add_argument("--yes", action="store_true", help="no prompts: answer yes and go on (for scripts)")
-        sp.add_argument("--json", action="store_true", help="print results as JSON")
+        json_option(sp)
 
     sm = sub.add_parser("setup-motors", help="give new servos their joint's ID and baud rate, one at a time")
     sm.add_argument("--robot", default="cat", help="robot name (default cat)")
@@ -302,7 +302,7 @@ def register(sub) -> None:
     sm.add_argument("--port", help="serial device, or 'virtual' (default $FELIS_PORT)")
     sm.add_argument("--baud", type=baud_rate, default=1_000_000, help="baud rate to set (default 1000000)")
     sm.add_argument("--yes", action="store_true", help="no prompts (the servo is already the only one connected)")
-    sm.add_argument("--json", action="store_true", help="print results as JSON")
+    json_option(sm)
     sm.set_defaults(func=cmd_setup_motors)
 
     ca = sub.add_parser("calibrate", help="record joint zeros (reference pose) and ranges (sweep); IMU mounting")
@@ -344,11 +344,11 @@ def register(sub) -> None:
     im.add_argument("--robot", help="robot (default: the file's)")
     im.add_argument("--id", help="store under this robot id instead of the file's")
     im.add_argument("--yes", action="store_true", help="replace an existing calibration without asking")
-    im.add_argument("--json", action="store_true", help="print results as JSON")
+    json_option(im)
     im.set_defaults(func=cmd_cal_import)
     ls = cs.add_parser("list", help="calibration files in the config directory")
     ls.add_argument("--yes", action="store_true", help="accepted for symmetry (list never asks)")
-    ls.add_argument("--json", action="store_true", help="print results as JSON")
+    json_option(ls)
     ls.set_defaults(func=cmd_cal_list)
 
     ce = sub.add_parser("check-eeprom", help="compare servo EEPROM settings with the robot's; apply on confirmation")

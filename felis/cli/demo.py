@@ -48,35 +48,13 @@ def cmd_demo(args) -> int:
         run_dir = root / f"{stamp}-{n}"
     console = output.console()
     t0 = time.perf_counter()
-    console.print("[bold]felis demo 1/4[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
-                  "by MuJoCo (DynamixelRobot → dynamixel-sdk → pty → emulated servos → physics)")
-    bus_res = episode(args, robot="cat", controller="stand", duration=3.0, backend="dxl", port=VIRTUAL,
-                      rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
-                      meta={"demo": True})
-    print_result(bus_res, console)
-    if bus_res.report.interrupted:
-        return EXIT_INTERRUPTED
-    console.print("[bold]felis demo 2/4[/]: the cat dropped from 1 m tilted 56° (roll -50°, pitch -30°) under the "
-                  "landing controller running the shipped evolved policy (seed 000; MuJoCo). Held still, it lands "
-                  "on its back from this drop; see docs/landing.md for where the policy fails")
-    # 2.5 s: the 0.45 s fall, the bounce, and the cat settled on four feet (the verdict: touchdown + 0.5 s)
-    res = episode(args, robot="cat", controller="landing", duration=2.5,
-                  drop=DEMO_DROP, controller_options={"policy": None, "drop_height": DEMO_DROP[0]},
-                  log=run_dir / "drop.mcap", video=None if args.no_video else run_dir / "drop.mp4",
-                  plot=run_dir / "drop.png", meta={"demo": True})
-    print_result(res, console)
-    if res.report.interrupted:
-        return EXIT_INTERRUPTED
-    console.print("[bold]felis demo 3/4[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
-                  "Posture Estimator → mean filter → exact refinement (MuJoCo)")
-    eight = trajectory_from("figure8")
-    arm_res = episode(args, robot="arm", controller="arm-track", duration=run_time(eight),
-                      controller_options={"trajectory": eight}, log=run_dir / "arm_figure8.mcap",
-                      video=None if args.no_video else run_dir / "arm_figure8.mp4",
-                      plot=run_dir / "arm_figure8.png", meta={"demo": True})
-    print_result(arm_res, console)
-    if arm_res.report.interrupted:
-        return EXIT_INTERRUPTED
+    results = []
+    for header, options in _episodes(run_dir, args.no_video):
+        console.print(header)
+        results.append(episode(args, **options()))
+        print_result(results[-1], console)
+        if results[-1].report.interrupted:
+            return EXIT_INTERRUPTED
     console.print("[bold]felis demo 4/4[/]: the standing cat pushed sideways: the XCoM balance monitor's margin "
                   "and alarm, without a reaction and with the learned strategy selector (MuJoCo)")
     from felis.learning.balance.train import push_demo  # late: the push experiments (MuJoCo)
@@ -88,4 +66,33 @@ def cmd_demo(args) -> int:
                       f"reaction {r['strategy']}; peak tilt {r['max_tilt_deg']:.0f}°")
     console.print("  " + ", ".join(f"{k}: {v}" for k, v in push["files"].items()))
     console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {run_dir}/")
-    return max((exit_code(r.report) for r in (bus_res, res, arm_res)), default=0)
+    return max((exit_code(r.report) for r in results), default=0)
+
+
+def _episodes(run_dir: Path, no_video: bool):
+    """The tour's first three runs: (header, a function giving their `episode` keywords when the run comes)."""
+
+    def arm() -> dict:
+        eight = trajectory_from("figure8")
+        return dict(robot="arm", controller="arm-track", duration=run_time(eight),
+                    controller_options={"trajectory": eight}, log=run_dir / "arm_figure8.mcap",
+                    video=None if no_video else run_dir / "arm_figure8.mp4",
+                    plot=run_dir / "arm_figure8.png", meta={"demo": True})
+
+    return (
+        ("[bold]felis demo 1/4[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
+         "by MuJoCo (DynamixelRobot → dynamixel-sdk → pty → emulated servos → physics)",
+         lambda: dict(robot="cat", controller="stand", duration=3.0, backend="dxl", port=VIRTUAL,
+                      rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
+                      meta={"demo": True})),
+        ("[bold]felis demo 2/4[/]: the cat dropped from 1 m tilted 56° (roll -50°, pitch -30°) under the "
+         "landing controller running the shipped evolved policy (seed 000; MuJoCo). Held still, it lands "
+         "on its back from this drop; see docs/landing.md for where the policy fails",
+         # 2.5 s: the 0.45 s fall, the bounce, and the cat settled on four feet (the verdict: touchdown + 0.5 s)
+         lambda: dict(robot="cat", controller="landing", duration=2.5,
+                      drop=DEMO_DROP, controller_options={"policy": None, "drop_height": DEMO_DROP[0]},
+                      log=run_dir / "drop.mcap", video=None if no_video else run_dir / "drop.mp4",
+                      plot=run_dir / "drop.png", meta={"demo": True})),
+        ("[bold]felis demo 3/4[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
+         "Posture Estimator → mean filter → exact refinement (MuJoCo)", arm),
+    )

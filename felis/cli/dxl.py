@@ -15,7 +15,7 @@ from __future__ import annotations
 import sys
 
 from felis.cli import output
-from felis.cli.args import baud_rate, bus_args, id_list, one_id, open_bus
+from felis.cli.args import baud_rate, bus_args, dry_run, id_list, json_option, open_bus, servo_command
 from felis.drivers.dynamixel.bus import SDK_BAUDS
 from felis.errors import CommError, ParameterError
 from felis.servos import hardware_error_names
@@ -25,7 +25,7 @@ def register(sub) -> None:
     """Add find-port, scan, info, read and write to the ``felis`` sub-commands."""
     fp = sub.add_parser("find-port", help="list serial ports; --unplug finds the adapter by unplugging it")
     fp.add_argument("--unplug", action="store_true", help="interactive: unplug the adapter to identify it")
-    fp.add_argument("--json", action="store_true", help="print results as JSON")
+    json_option(fp)
     fp.set_defaults(func=cmd_find_port)
 
     sc = sub.add_parser("scan", help="find servos: IDs and baud rates")
@@ -35,26 +35,17 @@ def register(sub) -> None:
                     help="baud rates to try, comma-separated (default: all)")
     sc.set_defaults(func=cmd_scan)
 
-    info = sub.add_parser("info", help="model, firmware, settings and state of one servo")
-    bus_args(info)
-    info.add_argument("id", type=one_id)
-    info.set_defaults(func=cmd_info)
+    servo_command(sub, "info", "model, firmware, settings and state of one servo", cmd_info)
 
-    rd = sub.add_parser("read", help="read a control-table item (SI units; --raw for raw)")
-    bus_args(rd)
-    rd.add_argument("id", type=one_id)
+    rd = servo_command(sub, "read", "read a control-table item (SI units; --raw for raw)", cmd_read)
     rd.add_argument("item", help="item name, e.g. present_position")
     rd.add_argument("--raw", action="store_true", help="raw control-table value")
-    rd.set_defaults(func=cmd_read)
 
-    wr = sub.add_parser("write", help="write a control-table item (EEPROM items need torque off)")
-    bus_args(wr)
-    wr.add_argument("id", type=one_id)
+    wr = servo_command(sub, "write", "write a control-table item (EEPROM items need torque off)", cmd_write)
     wr.add_argument("item", help="item name, e.g. goal_position")
     wr.add_argument("value", help="value in SI units (rad, rad/s, A, V, s), a name for modes, or raw with --raw")
     wr.add_argument("--raw", action="store_true", help="VALUE is the raw control-table value")
-    wr.add_argument("--dry-run", action="store_true", help="check everything, write nothing")
-    wr.set_defaults(func=cmd_write)
+    dry_run(wr)
 
 
 def cmd_find_port(args) -> int:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 
 from felis.cli import output
-from felis.cli.args import baud_rate, bus_args, id_list, one_id, open_bus
+from felis.cli.args import baud_rate, bus_args, dry_run, id_list, one_id, open_bus, servo_command
 from felis.drivers.dynamixel.bus import CorruptReplyError, NoReplyError, baud_code
 from felis.drivers.dynamixel.protocol import BROADCAST_ID
 from felis.errors import CommError, ParameterError
@@ -26,24 +26,15 @@ def register(sub) -> None:
     tq.add_argument("--id", type=id_list, help="servo IDs, e.g. 1,2,5-8")
     tq.set_defaults(func=cmd_torque)
 
-    rb = sub.add_parser("reboot", help="reboot a servo (clears hardware-error shutdown)")
-    bus_args(rb)
-    rb.add_argument("id", type=one_id)
-    rb.set_defaults(func=cmd_reboot)
+    servo_command(sub, "reboot", "reboot a servo (clears hardware-error shutdown)", cmd_reboot)
 
-    si = sub.add_parser("set-id", help="change a servo's ID (refuses an ID in use)")
-    bus_args(si)
-    si.add_argument("id", type=one_id)
+    si = servo_command(sub, "set-id", "change a servo's ID (refuses an ID in use)", cmd_set_id)
     si.add_argument("new_id", type=one_id)
-    si.add_argument("--dry-run", action="store_true", help="check everything, write nothing")
-    si.set_defaults(func=cmd_set_id)
+    dry_run(si)
 
-    sb = sub.add_parser("set-baud", help="change a servo's baud rate (verified by ping at the new rate)")
-    bus_args(sb)
-    sb.add_argument("id", type=one_id)
+    sb = servo_command(sub, "set-baud", "change a servo's baud rate (verified by ping at the new rate)", cmd_set_baud)
     sb.add_argument("new_baud", type=baud_rate)
-    sb.add_argument("--dry-run", action="store_true", help="check everything, write nothing")
-    sb.set_defaults(func=cmd_set_baud)
+    dry_run(sb)
 
 
 def cmd_torque(args) -> int:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from felis.cli.args import finite, group, size
+from felis.cli.args import finite, group, json_option, size
 from felis.cli.doctor import has_display
 from felis.cli.results import episode, report
 from felis.cli.run import drop_args
@@ -33,7 +33,7 @@ def register(sub) -> None:
     scenario_args(drop, need_height=True)
     drop.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
     drop.add_argument("--video", type=Path, help="render to this file (.mp4, .gif, .png)")
-    drop.add_argument("--json", action="store_true", help="print results as JSON")
+    json_option(drop)
     drop.add_argument("--servo-params", type=Path, metavar="FILE", help="servo parameters from `felis sysid`")
     drop.set_defaults(func=cmd_sim_drop)
 
@@ -42,7 +42,7 @@ def register(sub) -> None:
     render.add_argument("--out", type=Path, required=True, help="output file: .mp4, .gif or .png")
     render.add_argument("--fps", type=finite, default=30.0, help="frames per second (default 30)")
     render.add_argument("--size", type=size, default=(640, 480), help="WIDTHxHEIGHT (default 640x480)")
-    render.add_argument("--json", action="store_true", help="print results as JSON")
+    json_option(render)
     render.set_defaults(func=cmd_sim_render)
 
     view = simsub.add_parser("view", help="open the interactive viewer (needs a display)")

@@ -18,17 +18,12 @@ floor, turned by roll R, pitch P, yaw Y degrees (`felis.sim.scenarios.drop`); th
 torque first comes on (`felis.drivers.virtual`, module doc). ``felis run … --backend dxl --port
 virtual --height H`` uses it.
 
-The process lowers Python's thread switch interval to 0.5 ms: the server thread shares the GIL with
+Serving is `felis.drivers.virtual.process.serve` (with its `summary` line), as in a spawned bus; it lowers
+Python's thread switch interval to 0.5 ms: the server thread shares the GIL with
 the simulation and IMU threads, and a reply must not wait the default 5 ms for it.
 """
 
 from __future__ import annotations
-
-import signal
-import sys
-import time
-
-SWITCH_INTERVAL_S = 0.0005
 
 
 def register(sub) -> None:
@@ -90,31 +85,6 @@ def _drop(text: str | None) -> tuple[float, float, float, float] | None:
     return _numbers("--drop", text, 4, "1,180,0,0: height m, roll, pitch, yaw degrees")
 
 
-def summary(bus, args) -> str:
-    """One line: robot, servos, baud, backing, timing, faults."""
-    servos = bus.servos
-    models = sorted({s.model for s in servos})
-    ids = sorted(s.id for s in servos)
-    id_text = f"{ids[0]}…{ids[-1]}" if ids == list(range(ids[0], ids[-1] + 1)) else ", ".join(map(str, ids))
-    backing = "backed by MuJoCo" if args.sim else "standalone dynamics"
-    if getattr(args, "fixed_base", False):
-        backing += " (fixed base)"
-    if getattr(args, "servo_params", None):
-        backing += f" with servo parameters from {args.servo_params}"
-    if getattr(args, "imu_mount_deg", None):
-        backing += f", IMU mounted at roll,pitch,yaw {args.imu_mount_deg}°"
-    if getattr(args, "imu_drift", None):
-        backing += f", IMU drifting {args.imu_drift} rad/s"
-    drop = _drop(getattr(args, "drop", None))
-    if drop is not None:
-        backing += (f", held {drop[0]:g} m up at roll {drop[1]:g}° pitch {drop[2]:g}° yaw {drop[3]:g}° "
-                    "until torque comes on")
-    timing = "wire time modelled" if args.wire_time else "replies at once"
-    faults = f"faults {args.faults}" if args.faults else "no faults"
-    return (f"virtual bus: {bus.spec.name}, {len(servos)} × {'/'.join(models)} (IDs {id_text}) at {args.baud} bps, "
-            f"{backing}, {timing}, {faults}; stop with Ctrl-C or SIGTERM")
-
-
 def _imu_options(args) -> dict:
     """--imu-mount-deg / --imu-drift -> `VirtualBus.for_robot` keywords (the mount as a quaternion)."""
     out = {}
@@ -134,6 +104,7 @@ def _imu_options(args) -> dict:
 
 def cmd_virtual_bus(args) -> int:
     from felis.drivers.virtual import parse_fault_plan
+    from felis.drivers.virtual.process import serve, summary
     from felis.sim.servo_in_loop import virtual_bus
 
     faults = parse_fault_plan(args.faults) if args.faults else None
@@ -144,26 +115,13 @@ def cmd_virtual_bus(args) -> int:
         from felis.spec import load_spec
 
         servo_params = load_servo_params(args.servo_params, load_spec(args.robot))
+    imu = _imu_options(args)
     bus = virtual_bus(args.robot, baud=args.baud, sim=args.sim, wire_time=args.wire_time, faults=faults,
                       seed=args.seed, servo_params=servo_params,
-                      fixed_base=getattr(args, "fixed_base", False), drop=drop, **_imu_options(args))
-    # The handler only appends to a list: an Event.set() there would take the lock that the main thread's
-    # own Event.wait() may hold when the signal lands, and a second signal would then deadlock the process.
-    stop: list[int] = []
-    previous = {sig: signal.signal(sig, lambda signum, _frame: stop.append(signum))
-                for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
-    try:
-        bus.start()
-        print(f"port: {bus.port}", flush=True)
-        if bus.imu_port:
-            print(f"imu: {bus.imu_port}", flush=True)
-        print(summary(bus, args), flush=True)
-        while not stop:
-            time.sleep(0.05)
-    finally:
-        bus.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        print(f"virtual bus stopped: {bus.stats.summary()}", file=sys.stderr, flush=True)
-    return 0
+                      fixed_base=getattr(args, "fixed_base", False), drop=drop, **imu)
+    options = {"robot": args.robot, "baud": args.baud, "sim": args.sim, "wire_time": args.wire_time,
+               "faults": args.faults, "fixed_base": getattr(args, "fixed_base", False),
+               "servo_params": getattr(args, "servo_params", None), "imu_mount": imu.get("imu_mount"),
+               "imu_drift": imu.get("imu_drift"), "drop": drop}
+    return serve(bus, summary(bus, options, imu_mount_text=getattr(args, "imu_mount_deg", None),
+                              imu_drift_text=getattr(args, "imu_drift", None)))

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.files import check_fields, finite_number, read_json
+from felis.files import check_fields, finite_number, read_json_list
 from felis.rotations import G
 
 MAX_DROP_HEIGHT = 20.0  # m
@@ -109,11 +109,7 @@ def check_drop(item: object, where: str = "drop") -> Drop:
 
 def load_drops(path: str | Path) -> list[Drop]:
     """Read a drops file; one-line ParameterError naming the file (and item, and field) on any fault."""
-    path = Path(path)
-    doc = read_json(path, "drops file", ParameterError)
-    if not isinstance(doc, list) or not doc:
-        raise ParameterError(f"{path}: expected a non-empty JSON list of drops {{{', '.join(FIELDS)}}}")
-    return [check_drop(item, f"{path}: drop {i}") for i, item in enumerate(doc)]
+    return read_json_list(path, "drops file", f"drops {{{', '.join(FIELDS)}}}", "drop", check_drop, ParameterError)
 
 
 def random_drops(n: int, seed: int = 0, heights: float | tuple[float, ...] = (1.0,)) -> list[Drop]:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.files import check_fields, finite_number, read_json
+from felis.files import check_fields, finite_number, read_json_list
 
 BODIES = ("upper_body", "lower_body")
 PHASES = ("stand", "step")
@@ -66,11 +66,7 @@ def check_push(item: object, where: str = "push") -> Push:
 
 def load_pushes(path: str | Path) -> list[Push]:
     """Read a push file; one-line ParameterError naming the file (and item) on any fault."""
-    path = Path(path)
-    doc = read_json(path, "push file", ParameterError)
-    if not isinstance(doc, list) or not doc:
-        raise ParameterError(f"{path}: expected a non-empty JSON list of pushes")
-    return [check_push(item, f"{path}: push {i}") for i, item in enumerate(doc)]
+    return read_json_list(path, "push file", "pushes", "push", check_push, ParameterError)
 
 
 def random_pushes(n: int, seed: int = 0, impulse: tuple[float, float] = (0.1, 1.2),

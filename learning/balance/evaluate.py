@@ -24,9 +24,7 @@ else the peak tilt / 60° (< 1). Lower is better.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,6 +32,7 @@ import numpy as np
 from felis.controllers.balance import BalanceMonitor
 from felis.controllers.pose import PoseController
 from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController
+from felis.learning.common.evaluator import run_jobs, worker_count
 from felis.loop import run_loop
 from felis.scenarios.push import FALL_WINDOW_S, Push
 from felis.scenarios.verdicts import FALL_TILT_DEG
@@ -202,26 +201,13 @@ def run_pushes(pushes: Sequence[Push], reaction: str = "none", *, selector: str 
         from felis.errors import ParameterError
 
         raise ParameterError(f"unknown reaction {reaction!r}; known: {', '.join(REACTIONS)}, selector")
-    workers = max(1, min(workers or os.cpu_count() or 1, len(pushes)))
+    workers = worker_count(workers, len(pushes))
     jobs = [(p, reaction, trace) for p in pushes]
     if reaction == "selector":
         _load_selector(selector)  # a bad selector file fails here, once, as one line
     else:
         selector = ""
-    out: list[PushOutcome] = []
-    if workers == 1:
-        _init(monitor, selector)
-        for j in jobs:
-            out.append(_one(j))
-            if progress:
-                progress(1)
-        return out
-    with ProcessPoolExecutor(workers, initializer=_init, initargs=(monitor, selector)) as pool:
-        for o in pool.map(_one, jobs, chunksize=4):
-            out.append(o)
-            if progress:
-                progress(1)
-    return out
+    return run_jobs(_one, jobs, workers, _init, (monitor, selector), progress=progress)
 
 
 def summarise(outcomes: Sequence[PushOutcome]) -> dict:

@@ -84,14 +84,12 @@ from typing import Any
 import numpy as np
 
 from felis.errors import SelectorError
-from felis.files import one_line as _one_line
-from felis.files import read_npz, write_atomic
+from felis.files import META_KEY, read_meta, read_npz, write_atomic
 
 STRATEGIES: tuple[str, ...] = ("none", "brace", "crouch", "step")
 
 FORMAT = "felis-balance-select"
 VERSION = 1
-META_KEY = "__meta__"
 _HIT = 1e-12  # distance (standardised units) below which a query counts as on a stored case
 
 
@@ -447,8 +445,10 @@ class KnnSelector(_Selector):
         """Read a file written by `save`. With ``feature_names`` / ``strategies``, the file's must be the
         same, in the same order. Every problem is a one-line `SelectorError` naming the file."""
         path = Path(path)
-        data = _read_npz(path)
-        meta = _read_meta(data, path)
+        data = read_npz(path, "selector", SelectorError)
+        meta = read_meta(data, path, SelectorError, "balance-selector file", not_object=None,
+                         ident=("format", FORMAT, "format {got!r} is not {want!r}; not a balance-selector file"),
+                         version=("version", VERSION, "version {got!r} is not supported (felis reads {want})"))
         try:
             sel = cls(k=meta["k"], gamma=meta["gamma"], delta=meta["delta"], denoise=meta["denoise"],
                       power=meta["power"], interpolate=meta.get("interpolate", "labels"))
@@ -485,28 +485,6 @@ def _expect(path: Path, what: str, have: tuple[str, ...], want: Any) -> None:
     want = tuple(want)
     if have != want:
         raise SelectorError(f"{path}: {what} {list(have)} differ from the expected {list(want)}")
-
-
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    return read_npz(path, "selector", SelectorError)
-
-
-def _read_meta(data: dict[str, np.ndarray], path: Path) -> dict[str, Any]:
-    if META_KEY not in data:
-        raise SelectorError(f"{path}: no {META_KEY!r} metadata; not a felis balance-selector file")
-    raw = data[META_KEY]
-    if raw.dtype.kind != "U" or raw.shape != ():
-        raise SelectorError(f"{path}: {META_KEY!r} metadata is not a text string")
-    try:
-        meta = json.loads(str(raw))
-    except ValueError as e:
-        raise SelectorError(f"{path}: {META_KEY!r} metadata is not valid JSON ({_one_line(e)})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        fmt = meta.get("format") if isinstance(meta, dict) else None
-        raise SelectorError(f"{path}: format {fmt!r} is not {FORMAT!r}; not a balance-selector file")
-    if meta.get("version") != VERSION:
-        raise SelectorError(f"{path}: version {meta.get('version')!r} is not supported (felis reads {VERSION})")
-    return meta
 
 
 DEFAULT_SELECTOR = Path(__file__).parents[1] / "weights" / "balance_selector.npz"

@@ -63,21 +63,34 @@ def fingerprint(*arrays: np.ndarray) -> str:
     return f"{'/'.join('x'.join(map(str, a.shape)) for a in arrays)}:{crc:08x}"
 
 
-def run_epochs(model, opt, gen, n: int, cfg: Any, start: int, hist: dict, best: dict,
+def run_epochs(model, n: int, cfg: Any, new_history: Callable[[], dict],
                batch_loss: Callable[[Any], tuple[Any, Any]], finish: Callable[[Any], tuple[float, float, Sequence]],
-               diverged: Callable[[int, float], Exception], save: Callable[[int, dict, dict], None] | None,
-               progress: Callable[[int, int, float, float], None] | None, terms_shape: tuple[int, ...] = ()) -> dict:
-    """Epochs ``start`` … ``cfg.epochs − 1`` of ``model`` on ``n`` training rows (module doc); returns the
-    best state (the caller loads it).
+               diverged: Callable[[int, float], Exception], progress: Callable[[int, int, float, float], None] | None,
+               checkpoint: str | Path | None, resume: bool, save: Callable[[Path, int, Any, Any, dict, dict], None],
+               load: Callable[[Path, Any, Any], tuple[int, dict, dict]], terms_shape: tuple[int, ...] = ()) -> dict:
+    """Train ``model`` on ``n`` training rows for epochs … ``cfg.epochs − 1`` (module doc); returns the history,
+    with the model holding the best weights, in eval mode.
 
-    ``batch_loss(idx)`` → (loss to minimise, the detached terms to sum, of shape ``terms_shape``) for the
-    rows ``idx``; the sums, weighted by batch size, go to ``finish(sums)`` → (training loss, validation
-    loss, further (history key, value) pairs). A non-finite loss raises ``diverged(epoch, train_loss)``.
-    ``hist`` gets ``train``, ``val``, the further pairs, ``lr`` and ``seconds`` appended, ``best_val`` and
-    ``best_epoch`` updated. ``save(epoch, hist, best)`` (the checkpoint) and then ``progress(epoch,
-    epochs, train_loss, val_loss)`` after every epoch (1-based)."""
+    The run's Adam optimiser (fused: one kernel per step, deterministic on CPU) and generator (seeded with
+    ``cfg.seed``) are made here, the history by ``new_history()``. With ``resume`` and an existing
+    ``checkpoint``, ``load(checkpoint, opt, gen)`` restores them and returns (next epoch, history, best
+    state); a missing one starts afresh. ``batch_loss(idx)`` → (loss to minimise, the detached terms to sum,
+    of shape ``terms_shape``) for the rows ``idx``; the sums, weighted by batch size, go to ``finish(sums)`` →
+    (training loss, validation loss, further (history key, value) pairs). A non-finite loss raises
+    ``diverged(epoch, train_loss)``. The history gets ``train``, ``val``, the further pairs, ``lr`` and
+    ``seconds`` appended, ``best_val`` and ``best_epoch`` updated. After every epoch (1-based), ``save(checkpoint,
+    epoch, opt, gen, hist, best)`` when there is a ``checkpoint``, then ``progress(epoch, epochs, train_loss,
+    val_loss)``."""
     import torch
 
+    checkpoint = None if checkpoint is None else Path(checkpoint)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, fused=True)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    hist = new_history()
+    best = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    start = 0
+    if resume and checkpoint is not None and checkpoint.exists():
+        start, hist, best = load(checkpoint, opt, gen)
     params = list(model.parameters())
     for epoch in range(start, cfg.epochs):
         t0 = time.perf_counter()
@@ -105,11 +118,13 @@ def run_epochs(model, opt, gen, n: int, cfg: Any, start: int, hist: dict, best: 
         if hist["best_val"] is None or val_loss < hist["best_val"]:
             hist["best_val"], hist["best_epoch"] = val_loss, epoch + 1
             best = {k: v.detach().clone() for k, v in model.state_dict().items()}
-        if save is not None:
-            save(epoch + 1, hist, best)
+        if checkpoint is not None:
+            save(checkpoint, epoch + 1, opt, gen, hist, best)
         if progress is not None:
             progress(epoch + 1, cfg.epochs, train_loss, val_loss)
-    return best
+    model.load_state_dict(best)
+    model.eval()
+    return hist
 
 
 def plot_loss_curves(history: Mapping[str, Mapping[str, Sequence[float]]], path: Path,

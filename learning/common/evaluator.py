@@ -40,6 +40,33 @@ from felis.errors import EvaluatorError, ParameterError
 BATCHES_PER_WORKER = 4  # default chunking: about this many batches per worker in one map call
 
 
+def worker_count(workers: int | None, n_jobs: int) -> int:
+    """The processes for ``n_jobs`` jobs: ``workers`` (default every core), at most one per job, at least 1."""
+    return max(1, min(workers or os.cpu_count() or 1, n_jobs))
+
+
+def run_jobs(fn: Callable[[Any], Any], jobs: Sequence, workers: int, initializer: Callable[..., None] | None = None,
+             initargs: tuple = (), chunksize: int = 4, progress: Callable[[int], None] | None = None) -> list:
+    """``fn`` over ``jobs``, results in job order: inline when ``workers`` is 1 (``initializer(*initargs)``
+    first, here), else in a process pool of ``workers`` made for this call (each process runs the
+    initializer), jobs in batches of ``chunksize``; ``progress(1)`` after each result. Unlike the
+    evaluators, the numeric libraries' thread pools are left as they are."""
+    out = []
+    if workers == 1:
+        if initializer is not None:
+            initializer(*initargs)
+        for job in jobs:
+            out.append(fn(job))
+            if progress:
+                progress(1)
+        return out
+    with ProcessPoolExecutor(workers, initializer=initializer, initargs=initargs) as pool:
+        for result in pool.map(fn, jobs, chunksize=chunksize):
+            out.append(result)
+            if progress:
+                progress(1)
+    return out
+
 
 @runtime_checkable
 class Evaluator(Protocol):

@@ -15,10 +15,9 @@ JSON metadata string (`felis.learning.ik.net.save_weights`).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,7 @@ import numpy as np
 
 from felis.armkin import REACH, SHOULDER
 from felis.errors import ParameterError, WeightsError
-from felis.files import read_npz as _read_npz
+from felis.files import META_KEY, check_float_arrays, dataclass_from_json, read_meta, read_npz
 
 # --- network windows (frame offsets at 100 Hz; seed 001 §3.1.2)
 
@@ -37,7 +36,6 @@ PE_OUT = (0, 1, 2, 3, 4, 5)
 
 MODEL_ID = "felis-ik"
 SCHEMA = 1
-META_KEY = "__meta__"
 KINDS = ("lstm", "mlp")
 STAT_KEYS = ("x_mean", "x_std", "y_mean", "y_std")
 
@@ -118,14 +116,7 @@ class NetSpec:
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> NetSpec:
         """Inverse of `to_json`; unknown or missing keys raise ParameterError."""
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ParameterError(f"net spec has unknown keys {', '.join(sorted(unknown))}")
-        try:
-            return cls(**d)
-        except TypeError as e:
-            raise ParameterError(f"net spec is incomplete: {e}") from None
+        return dataclass_from_json(cls, d, "net spec", ParameterError)
 
 
 def lstm_params(spec: NetSpec) -> int:
@@ -187,18 +178,7 @@ def decode_angles(x: np.ndarray) -> np.ndarray:
 def check_arrays(spec: NetSpec, arrays: Mapping[str, np.ndarray], where: str) -> None:
     """WeightsError (one line starting with ``where``) unless ``arrays`` holds every array of ``spec``
     with the right shape, a float dtype, finite values and positive standard deviations."""
-    for key, shape in spec.shapes().items():
-        if key not in arrays:
-            raise WeightsError(f"{where} lacks array {key!r}")
-        a = np.asarray(arrays[key])
-        if a.shape != shape:
-            raise WeightsError(f"{where} array {key!r} has shape {a.shape}, the spec needs {shape}")
-        if a.dtype.kind != "f":
-            raise WeightsError(f"{where} array {key!r} has dtype {a.dtype}, not a float type")
-        if not np.all(np.isfinite(a)):
-            raise WeightsError(f"{where} array {key!r} holds non-finite values")
-        if key.endswith("_std") and not np.all(a > 0):
-            raise WeightsError(f"{where} array {key!r} holds a non-positive standard deviation")
+    check_float_arrays(arrays, spec.shapes(), where, WeightsError, positive=("x_std", "y_std"))
 
 
 # --------------------------------------------------------------------------------------------- numpy
@@ -321,39 +301,15 @@ class NumpyNet:
 # --------------------------------------------------------------------------------------- weights file
 
 
-def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
-    """All arrays of an ``.npz``; one-line WeightsError on a bad file (`felis.files.read_npz`)."""
-    return _read_npz(path, what, WeightsError)
-
-
-def read_meta(data: Mapping[str, np.ndarray], path: Path, what: str) -> dict[str, Any]:
-    """The JSON document under ``__meta__``; WeightsError if absent or not a JSON object."""
-    if META_KEY not in data:
-        raise WeightsError(f"{path}: no {META_KEY!r} metadata; not a felis {what} file")
-    raw = data[META_KEY]
-    if raw.dtype.kind != "U" or raw.shape != ():
-        raise WeightsError(f"{path}: {META_KEY!r} metadata is not a text string")
-    try:
-        doc = json.loads(str(raw))
-    except ValueError as e:
-        raise WeightsError(f"{path}: {META_KEY!r} metadata is not valid JSON ({e})") from None
-    if not isinstance(doc, dict):
-        raise WeightsError(f"{path}: {META_KEY!r} metadata is not a JSON object")
-    return doc
-
-
 def load_arrays(path: str | Path, expect: Mapping[str, Any] | None = None
                 ) -> tuple[dict[str, tuple[NetSpec, dict[str, np.ndarray]]], dict[str, Any]]:
     """Read a weights file as (name → (spec, float32 arrays), metadata): the inverse of `save_weights`
     (e.g. to re-save one net beside a newly trained one). Checks and errors as `load_weights`."""
     path = Path(path)
-    data = read_npz(path, "weights")
-    doc = read_meta(data, path, "IK weights")
-    if doc.get("model") != MODEL_ID:
-        raise WeightsError(f"{path}: model id {doc.get('model')!r} is not {MODEL_ID!r}; not IK weights")
-    if doc.get("schema") != SCHEMA:
-        raise WeightsError(f"{path}: weights schema {doc.get('schema')!r} is not supported (felis reads schema "
-                           f"{SCHEMA})")
+    data = read_npz(path, "weights", WeightsError)
+    doc = read_meta(data, path, WeightsError, "IK weights file", detail=str,
+                    ident=("model", MODEL_ID, "model id {got!r} is not {want!r}; not IK weights"),
+                    version=("schema", SCHEMA, "weights schema {got!r} is not supported (felis reads schema {want})"))
     if not isinstance(doc.get("nets"), dict) or not doc["nets"]:
         raise WeightsError(f"{path}: metadata lists no nets")
     specs: dict[str, NetSpec] = {}

@@ -39,7 +39,6 @@ nets under ``<name>/`` prefixes and a JSON metadata string (see `save_weights`).
 from __future__ import annotations
 
 import functools
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -47,9 +46,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from felis.errors import ParameterError, WeightsError
-from felis.files import write_atomic
-from felis.learning.common.jsonable import jsonable
-from felis.learning.ik.infer import META_KEY, MODEL_ID, SCHEMA, NetSpec, check_arrays, param_count
+from felis.learning.common.torchstate import lazy_attribute, model_with_arrays
+from felis.learning.common.weights import weights_target, write_weights
+from felis.learning.ik.infer import MODEL_ID, SCHEMA, NetSpec, check_arrays, param_count
 
 if TYPE_CHECKING:  # torch is imported lazily: inference with NumpyNet must not pay for it
     import torch
@@ -120,11 +119,8 @@ def _seqnet_class():
     return SeqNet
 
 
-def __getattr__(name: str):
-    """``SeqNet`` is built on first access, so importing this module does not import torch."""
-    if name == "SeqNet":
-        return _seqnet_class()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# ``SeqNet`` is built on first access, so importing this module does not import torch.
+__getattr__ = lazy_attribute(__name__, "SeqNet", _seqnet_class)
 
 
 def model_from_spec(spec: NetSpec):
@@ -133,20 +129,10 @@ def model_from_spec(spec: NetSpec):
                            spec.in_offsets, spec.out_offsets)
 
 
-def torch_to_arrays(model) -> dict[str, np.ndarray]:
-    """The model's state (parameters and normalisation buffers) as float32 numpy arrays, by state_dict key."""
-    return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in model.state_dict().items()}
-
-
 def arrays_to_torch(spec: NetSpec, arrays: Mapping[str, np.ndarray]):
     """A `SeqNet` for ``spec`` holding ``arrays`` (as from `torch_to_arrays`); WeightsError if they do not fit."""
-    import torch
-
     check_arrays(spec, arrays, f"net {spec.name!r}")
-    with torch.random.fork_rng(devices=[]):  # construction draws random init weights; keep global RNG as is
-        model = model_from_spec(spec)
-    model.load_state_dict({k: torch.as_tensor(np.asarray(arrays[k], dtype=np.float32)) for k in spec.shapes()})
-    return model
+    return model_with_arrays(lambda: model_from_spec(spec), spec.shapes(), arrays)
 
 
 # --------------------------------------------------------------------------------------- weights file
@@ -165,13 +151,7 @@ def save_weights(path: str | Path, nets: Mapping[str, tuple[NetSpec, Mapping[str
     where ``meta`` (JSON-serialisable; e.g. training results, data set description) may not use the
     keys "schema", "model", "nets". The arrays are checked first, so a bad net is never written.
     """
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise WeightsError(f"{path}: a weights file must end in .npz")
-    meta = dict(meta or {})
-    clash = [k for k in RESERVED_META if k in meta]
-    if clash:
-        raise ParameterError(f"weights metadata may not set the reserved key(s) {', '.join(clash)}")
+    path, meta = weights_target(path, meta, RESERVED_META, "weights", "weights", WeightsError)
     if not nets:
         raise ParameterError("no nets to save")
     arrays: dict[str, np.ndarray] = {}
@@ -184,10 +164,5 @@ def save_weights(path: str | Path, nets: Mapping[str, tuple[NetSpec, Mapping[str
             arrays[f"{name}/{key}"] = np.asarray(state[key], dtype=np.float32)
         doc_nets[name] = {"spec": spec.to_json(), "params": param_count(spec),
                           "in_offsets": list(spec.in_offsets), "out_offsets": list(spec.out_offsets)}
-    try:
-        text = json.dumps({"schema": SCHEMA, "model": MODEL_ID, "nets": doc_nets, **meta}, allow_nan=False,
-                          default=jsonable)
-    except (TypeError, ValueError) as e:
-        raise ParameterError(f"weights metadata is not JSON-serialisable: {e}") from None
-    arrays[META_KEY] = np.array(text)
-    return write_atomic(path, lambda f: np.savez(f, **arrays), "IK weights", WeightsError)
+    doc = {"schema": SCHEMA, "model": MODEL_ID, "nets": doc_nets, **meta}
+    return write_weights(path, arrays, doc, "weights", "IK weights", WeightsError)

@@ -23,11 +23,12 @@ from pathlib import Path
 from felis.errors import ParameterError
 from felis.files import write_atomic
 from felis.learning.common.curves import plot_loss_curves
+from felis.learning.common.torchstate import torch_to_arrays
 from felis.learning.ik.corpus import recorded_demos
 from felis.learning.ik.data import make_corpus, split, windows
 from felis.learning.ik.evaluate import evaluate
 from felis.learning.ik.infer import MP_IN, MP_OUT, PE_IN, PE_OUT, NetSpec, load_arrays
-from felis.learning.ik.net import save_weights, torch_to_arrays
+from felis.learning.ik.net import save_weights
 from felis.learning.ik.solver import IkSolver
 from felis.learning.ik.train import TrainConfig, train_net
 

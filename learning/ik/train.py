@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import TypedDict
 
@@ -31,8 +32,9 @@ import numpy as np
 from felis.errors import ParameterError, WeightsError
 from felis.learning.common.checkpoints import load_checkpoint, save_checkpoint
 from felis.learning.common.curves import TorchSettings, fingerprint, run_epochs, stats
+from felis.learning.common.torchstate import torch_to_arrays
 from felis.learning.ik.infer import NetSpec, check_arrays
-from felis.learning.ik.net import model_from_spec, torch_to_arrays
+from felis.learning.ik.net import model_from_spec
 
 CHECKPOINT_ID = "felis-ik-checkpoint"
 CHECKPOINT_SCHEMA = 1
@@ -163,14 +165,6 @@ def train_net(X, Y, Xval, Yval, spec: NetSpec, cfg: TrainConfig, checkpoint: Pat
         if has_val:
             xv = torch.from_numpy(((Xval - x_mean) / x_std).astype(np.float32))
             yv = torch.from_numpy(((Yval - y_mean) / y_std).astype(np.float32))
-        opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, fused=True)  # one kernel per step; deterministic on CPU
-        gen = torch.Generator().manual_seed(cfg.seed)
-        hist = new_history()
-        best = {k: v.detach().clone() for k, v in model.state_dict().items()}
-        start = 0
-        if resume and checkpoint is not None and Path(checkpoint).exists():
-            start, hist, best = _load_checkpoint(Path(checkpoint), run_id, spec, model, opt, gen)
-
         n = xs.shape[0]
 
         def batch_loss(idx):
@@ -185,11 +179,8 @@ def train_net(X, Y, Xval, Yval, spec: NetSpec, cfg: TrainConfig, checkpoint: Pat
             return ParameterError(f"training of net {spec.name!r} diverged at epoch {epoch} (loss "
                                   f"{train_loss:.3g}); lower the lr (now {cfg.lr:g}) or grad_clip")
 
-        save = None if checkpoint is None else (
-            lambda epoch, hist, best: _save_checkpoint(Path(checkpoint), run_id, epoch, model, opt, gen, hist, best))
-        best = run_epochs(model, opt, gen, n, cfg, start, hist, best, batch_loss, finish, diverged, save, progress)
-        model.load_state_dict(best)
-        model.eval()
+        hist = run_epochs(model, n, cfg, new_history, batch_loss, finish, diverged, progress, checkpoint, resume,
+                          partial(_save_checkpoint, run_id, model), partial(_load_checkpoint, run_id, spec, model))
     return model, hist
 
 
@@ -209,12 +200,12 @@ def _evaluate(model, xs, ys) -> float:
 # ----------------------------------------------------------------------------------------- checkpoint
 
 
-def _save_checkpoint(path: Path, run_id: dict, epoch: int, model, opt, gen, hist: History, best: dict) -> None:
+def _save_checkpoint(run_id: dict, model, path: Path, epoch: int, opt, gen, hist: History, best: dict) -> None:
     save_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id, epoch, torch_to_arrays(model), opt, gen, hist,
                     HISTORY_LISTS, best, "training checkpoint", WeightsError)
 
 
-def _load_checkpoint(path: Path, run_id: dict, spec: NetSpec, model, opt, gen):
+def _load_checkpoint(run_id: dict, spec: NetSpec, model, path: Path, opt, gen):
     """Restore model, optimiser, generator from ``path`` (`felis.learning.common.checkpoints`); returns (next
     epoch, history, best state). WeightsError (one line) for a corrupt checkpoint or one from another run."""
     return load_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id,

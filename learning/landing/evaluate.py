@@ -23,15 +23,14 @@ deterministic and independent. `summarise` gives the success rate (landed / drop
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 from felis.controllers import make_controller
 from felis.errors import ParameterError, SimulationError
 from felis.hal import Controller
+from felis.learning.common.evaluator import run_jobs, worker_count
 from felis.loop import run_loop
 from felis.rotations import tilt_from_up
 from felis.scenarios.drop import Drop
@@ -208,25 +207,15 @@ def run_drops(drops: Sequence[Drop], policy: str = "passive", *, workers: int | 
         raise ParameterError(f"workers must be ≥ 1, got {workers}")
     if not drops:
         return []
-    workers = max(1, min(workers or os.cpu_count() or 1, len(drops)))
+    workers = worker_count(workers, len(drops))
     jobs = [(d, policy) for d in drops]
-    out: list[LandingOutcome] = []
-    if workers == 1:
+    if workers == 1:  # this process's own model, closed when done
         sim = LandingSim(robot)
         try:
-            for d in drops:
-                out.append(sim.run(d, policy))
-                if progress:
-                    progress(1)
+            return run_jobs(lambda job: sim.run(*job), jobs, 1, progress=progress)
         finally:
             sim.close()
-        return out
-    with ProcessPoolExecutor(workers, initializer=_init, initargs=(robot,)) as pool:
-        for o in pool.map(_one, jobs, chunksize=max(1, min(4, len(jobs) // (4 * workers)))):
-            out.append(o)
-            if progress:
-                progress(1)
-    return out
+    return run_jobs(_one, jobs, workers, _init, (robot,), max(1, min(4, len(jobs) // (4 * workers))), progress)
 
 
 def summarise(outcomes: Sequence[LandingOutcome]) -> dict:

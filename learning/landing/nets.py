@@ -21,12 +21,11 @@ from typing import Any, TypeVar
 import numpy as np
 
 from felis.errors import ParameterError, PolicyError
-from felis.files import write_atomic
+from felis.files import META_KEY, write_atomic
 from felis.learning.landing.policy import (
     FORMAT,
     IT_NAMES,
     JOINTS,
-    META_KEY,
     PARTS,
     VERSION,
     ComplexBehaviour,

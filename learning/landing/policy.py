@@ -34,7 +34,6 @@ targets; `landing_rule` then holds the spine straight near the ground (§6.2).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -44,8 +43,7 @@ from typing import Any
 import numpy as np
 
 from felis.errors import ParameterError, PolicyError
-from felis.files import one_line as _one_line
-from felis.files import read_npz
+from felis.files import read_meta, read_npz
 from felis.rotations import roll_pitch
 from felis.servos import SERVOS
 
@@ -60,7 +58,6 @@ LANDING_HEIGHT_M = 0.5  # spine held straight below this waist height: eq. 9's 5
 DEFAULT_POLICY = Path(__file__).parents[1] / "weights" / "landing.npz"  # the shipped policy (`felis train landing`)
 FORMAT = "felis-landing-policy"
 VERSION = 1
-META_KEY = "__meta__"
 
 
 @dataclass(frozen=True)
@@ -287,12 +284,6 @@ class ComplexBehaviour:
 # -------------------------------------------------------------------------------------- policy files
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    return read_npz(path, "landing policy", PolicyError)
-
-
-
-
 def _load_unit(path: Path, data: Mapping[str, np.ndarray], units: Mapping[str, Any], name: str,
                kind: str) -> GeneUnit:
     entry = units.get(name)
@@ -327,23 +318,11 @@ def load_policy(path: str | Path) -> tuple[SimpleBehaviour | ComplexBehaviour, d
     objects, no or bad metadata, another format or version, joints other than the cat's 12, a missing
     unit or array, shapes that do not fit the unit's structure, non-finite weights."""
     path = Path(path)
-    data = _read_npz(path)
-    if META_KEY not in data:
-        raise PolicyError(f"{path}: no {META_KEY!r} metadata; not a felis landing policy")
-    raw = data[META_KEY]
-    if raw.dtype.kind != "U" or raw.shape != ():
-        raise PolicyError(f"{path}: {META_KEY!r} metadata is not a text string")
-    try:
-        doc = json.loads(str(raw))
-    except ValueError as e:
-        raise PolicyError(f"{path}: {META_KEY!r} metadata is not valid JSON ({_one_line(e)})") from None
-    if not isinstance(doc, dict):
-        raise PolicyError(f"{path}: {META_KEY!r} metadata is not a JSON object")
-    if doc.get("format") != FORMAT:
-        raise PolicyError(f"{path}: format {doc.get('format')!r} is not {FORMAT!r}; not a landing policy")
-    if doc.get("version") != VERSION:
-        raise PolicyError(f"{path}: policy version {doc.get('version')!r} is not supported (felis reads "
-                          f"version {VERSION})")
+    data = read_npz(path, "landing policy", PolicyError)
+    doc = read_meta(data, path, PolicyError, "landing policy",
+                    ident=("format", FORMAT, "format {got!r} is not {want!r}; not a landing policy"),
+                    version=("version", VERSION,
+                             "policy version {got!r} is not supported (felis reads version {want})"))
     joints = doc.get("joints")
     if not isinstance(joints, list) or len(joints) != len(JOINTS):
         n = len(joints) if isinstance(joints, list) else "no"

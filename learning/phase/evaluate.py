@@ -26,13 +26,12 @@ watch, so all three see the same physics. Recall and false alarms per monitor, p
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+from felis.learning.common.evaluator import run_jobs, worker_count
 from felis.learning.phase.data import GaitRecording, contact_frequency
 from felis.learning.phase.estimator import PhaseEstimator, _window_all, phase_track
 from felis.learning.phase.infer import PaeNumpy
@@ -154,20 +153,7 @@ def _one(p) -> dict:
 def gate_comparison(pushes, weights: str | Path, workers: int | None = None,
                     progress: Callable[[int], None] | None = None) -> dict:
     """Recall and false alarms of the three monitors (module doc) on the same runs, overall and by phase."""
-    workers = max(1, min(workers or os.cpu_count() or 1, len(pushes)))
-    rows = []
-    if workers == 1:
-        _init(str(weights))
-        for p in pushes:
-            rows.append(_one(p))
-            if progress:
-                progress(1)
-    else:
-        with ProcessPoolExecutor(workers, initializer=_init, initargs=(str(weights),)) as pool:
-            for r in pool.map(_one, pushes, chunksize=4):
-                rows.append(r)
-                if progress:
-                    progress(1)
+    rows = run_jobs(_one, pushes, worker_count(workers, len(pushes)), _init, (str(weights),), progress=progress)
     out = {"pushes": len(rows)}
     for phase in ("all", "stand", "step"):
         sel = [r for r in rows if phase == "all" or r["phase"] == phase]

@@ -7,21 +7,19 @@ are `felis.learning.phase.pae`; its module doc gives the formulas `PaeNumpy` com
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from felis.errors import ParameterError, PhaseError
-from felis.files import read_npz
+from felis.files import META_KEY, check_float_arrays, dataclass_from_json, read_meta, read_npz
 
 MODEL_ID = "felis-pae"
 SCHEMA = 1
-META_KEY = "__meta__"
 EPS = 1e-12
 TWO_PI = 2.0 * math.pi
 
@@ -79,13 +77,7 @@ class PaeConfig:
         """Inverse of `to_json`; ParameterError for a non-object, unknown or missing keys, bad values."""
         if not isinstance(d, Mapping):
             raise ParameterError(f"PAE config must be an object, got {type(d).__name__}")
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ParameterError(f"PAE config has unknown keys {', '.join(sorted(unknown))}")
-        try:
-            return cls(**d)
-        except TypeError as e:
-            raise ParameterError(f"PAE config is incomplete: {e}") from None
+        return dataclass_from_json(cls, d, "PAE config", ParameterError)
 
     @property
     def param_count(self) -> int:
@@ -105,16 +97,7 @@ def check_arrays(cfg: PaeConfig, arrays: Mapping[str, np.ndarray], where: str) -
     extra = sorted(set(arrays) - set(shapes))
     if extra:
         raise PhaseError(f"{where}: unexpected array {extra[0]!r}; not a PAE of this config")
-    for key, shape in shapes.items():
-        if key not in arrays:
-            raise PhaseError(f"{where}: lacks array {key!r}")
-        a = np.asarray(arrays[key])
-        if a.shape != shape:
-            raise PhaseError(f"{where}: array {key!r} has shape {a.shape}, the config needs {shape}")
-        if a.dtype.kind != "f":
-            raise PhaseError(f"{where}: array {key!r} has dtype {a.dtype}, not a float type")
-        if not np.all(np.isfinite(a)):
-            raise PhaseError(f"{where}: array {key!r} holds non-finite values")
+    check_float_arrays(arrays, shapes, f"{where}:", PhaseError, "the config needs")
     if not np.all(np.asarray(arrays["std"]) > 0):
         raise PhaseError(f"{where}: array 'std' holds a non-positive standard deviation")
 
@@ -200,19 +183,10 @@ def read_pae(path: str | Path, expect_joints: int | Sequence[str] | None = None
     model or schema, a bad config, a missing or misshapen array, non-finite values, other joints."""
     path = Path(path)
     data = read_npz(path, "PAE weights", PhaseError)
-    if META_KEY not in data:
-        raise PhaseError(f"{path}: no {META_KEY!r} metadata; not a felis PAE weights file")
-    raw = data.pop(META_KEY)
-    try:
-        doc = json.loads(str(raw)) if raw.dtype.kind == "U" and raw.shape == () else None
-    except ValueError as e:
-        raise PhaseError(f"{path}: {META_KEY!r} metadata is not valid JSON ({e})") from None
-    if not isinstance(doc, dict):
-        raise PhaseError(f"{path}: {META_KEY!r} metadata is not a JSON object")
-    if doc.get("model") != MODEL_ID:
-        raise PhaseError(f"{path}: model id {doc.get('model')!r} is not {MODEL_ID!r}; not a PAE weights file")
-    if doc.get("schema") != SCHEMA:
-        raise PhaseError(f"{path}: PAE schema {doc.get('schema')!r} is not supported (felis reads {SCHEMA})")
+    doc = read_meta(data, path, PhaseError, "PAE weights file", detail=str, not_text="is not a JSON object",
+                    ident=("model", MODEL_ID, "model id {got!r} is not {want!r}; not a PAE weights file"),
+                    version=("schema", SCHEMA, "PAE schema {got!r} is not supported (felis reads {want})"))
+    del data[META_KEY]
     try:
         cfg = PaeConfig.from_json(doc.get("config"))
     except ParameterError as e:

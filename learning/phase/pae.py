@@ -70,7 +70,6 @@ arrays (float32) and a JSON ``__meta__``.
 from __future__ import annotations
 
 import functools
-import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -78,12 +77,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from felis.errors import ParameterError, PhaseError
-from felis.files import write_atomic
-from felis.learning.common.jsonable import jsonable
+from felis.errors import PhaseError
+from felis.learning.common.torchstate import lazy_attribute, model_with_arrays, torch_to_arrays
+from felis.learning.common.weights import weights_target, write_weights
 from felis.learning.phase.infer import (
     EPS,
-    META_KEY,
     MODEL_ID,
     SCHEMA,
     TWO_PI,
@@ -222,11 +220,8 @@ def _pae_class():
     return PAE
 
 
-def __getattr__(name: str):
-    """``PAE`` is built on first access, so importing this module does not import torch."""
-    if name == "PAE":
-        return _pae_class()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# ``PAE`` is built on first access, so importing this module does not import torch.
+__getattr__ = lazy_attribute(__name__, "PAE", _pae_class)
 
 
 def model_from_config(cfg: PaeConfig):
@@ -294,20 +289,10 @@ def predict_frames(model, x: torch.Tensor, n: int, dt: float, frame: int = -1) -
     return model.decode(*flat).reshape(B, n, J, W)[..., c]
 
 
-def torch_to_arrays(model) -> dict[str, np.ndarray]:
-    """The model's persistent state (parameters, ``mean``, ``std``) as float32 arrays, by state-dict key."""
-    return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in model.state_dict().items()}
-
-
 def arrays_to_torch(cfg: PaeConfig, arrays: Mapping[str, np.ndarray], where: str = "PAE"):
-    """A `PAE` for ``cfg`` holding ``arrays``; PhaseError (one line) if they do not fit."""
-    import torch
-
+    """A `PAE` for ``cfg`` holding ``arrays`` (in eval mode); PhaseError (one line) if they do not fit."""
     check_arrays(cfg, arrays, where)
-    with torch.random.fork_rng(devices=[]):  # construction draws init weights; keep the global RNG as is
-        model = model_from_config(cfg)
-    model.load_state_dict({k: torch.as_tensor(np.asarray(arrays[k], dtype=np.float32)) for k in cfg.shapes()})
-    return model.eval()
+    return model_with_arrays(lambda: model_from_config(cfg), cfg.shapes(), arrays).eval()
 
 
 # --------------------------------------------------------------------------------------- weights file
@@ -322,22 +307,12 @@ def save_pae(path: str | Path, model, meta: Mapping[str, Any] | None = None) -> 
     ``meta`` (JSON-serialisable: e.g. the training config, history, data description) may not use the
     keys "model", "schema", "config". The arrays are checked first, so a bad model is never written.
     """
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise PhaseError(f"{path}: a PAE weights file must end in .npz")
-    meta = dict(meta or {})
-    clash = [k for k in RESERVED_META if k in meta]
-    if clash:
-        raise ParameterError(f"PAE metadata may not set the reserved key(s) {', '.join(clash)}")
+    path, meta = weights_target(path, meta, RESERVED_META, "PAE weights", "PAE", PhaseError)
     cfg: PaeConfig = model.config
     arrays = torch_to_arrays(model)
     check_arrays(cfg, arrays, f"{path}: model")
     doc = {"model": MODEL_ID, "schema": SCHEMA, "config": cfg.to_json(), "params": cfg.param_count, **meta}
-    try:
-        arrays[META_KEY] = np.array(json.dumps(doc, allow_nan=False, default=jsonable))
-    except (TypeError, ValueError) as e:
-        raise ParameterError(f"PAE metadata is not JSON-serialisable: {e}") from None
-    return write_atomic(path, lambda f: np.savez(f, **arrays), "PAE weights", PhaseError)
+    return write_weights(path, arrays, doc, "PAE", "PAE weights", PhaseError)
 
 
 def load_pae(path: str | Path, expect_joints: int | Sequence[str] | None = None):

@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, TypedDict
 
@@ -45,8 +46,9 @@ import numpy as np
 from felis.errors import ParameterError, PhaseError
 from felis.learning.common.checkpoints import load_checkpoint, save_checkpoint
 from felis.learning.common.curves import TorchSettings, fingerprint, run_epochs, stats
+from felis.learning.common.torchstate import torch_to_arrays
 from felis.learning.phase.infer import PaeConfig, check_arrays
-from felis.learning.phase.pae import fld_terms, model_from_config, predict_frames, torch_to_arrays
+from felis.learning.phase.pae import fld_terms, model_from_config, predict_frames
 
 CHECKPOINT_ID = "felis-pae-checkpoint"
 CHECKPOINT_SCHEMA = 1
@@ -243,13 +245,6 @@ def train_phase(train_trajs, val_trajs, cfg: PhaseTrainConfig, checkpoint: Path 
         segs = torch.from_numpy(seg)
         segv = torch.from_numpy(seg_val) if has_val else None
         weights = cfg.alpha ** torch.arange(cfg.fld_steps + 1, dtype=torch.float32)
-        opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, fused=True)
-        gen = torch.Generator().manual_seed(cfg.seed)
-        hist = new_history()
-        best = {k: v.detach().clone() for k, v in model.state_dict().items()}
-        start = 0
-        if resume and checkpoint is not None and Path(checkpoint).exists():
-            start, hist, best = _load_checkpoint(Path(checkpoint), run_id, pcfg, model, opt, gen)
 
         n = segs.shape[0]
 
@@ -268,12 +263,9 @@ def train_phase(train_trajs, val_trajs, cfg: PhaseTrainConfig, checkpoint: Path 
             return PhaseError(f"phase training diverged at epoch {epoch} (loss {train_loss:.3g}); lower the "
                               f"lr (now {cfg.lr:g}) or grad_clip")
 
-        save = None if checkpoint is None else (
-            lambda epoch, hist, best: _save_checkpoint(Path(checkpoint), run_id, epoch, model, opt, gen, hist, best))
-        best = run_epochs(model, opt, gen, n, cfg, start, hist, best, batch_loss, finish, diverged, save, progress,
+        hist = run_epochs(model, n, cfg, new_history, batch_loss, finish, diverged, progress, checkpoint, resume,
+                          partial(_save_checkpoint, run_id, model), partial(_load_checkpoint, run_id, pcfg, model),
                           terms_shape=(2,))
-        model.load_state_dict(best)
-        model.eval()
     return model, hist
 
 
@@ -295,12 +287,12 @@ def _losses(model, segs, cfg: PhaseTrainConfig, weights) -> tuple[float, float]:
 # ----------------------------------------------------------------------------------------- checkpoint
 
 
-def _save_checkpoint(path: Path, run_id: dict, epoch: int, model, opt, gen, hist: PhaseHistory, best: dict) -> None:
+def _save_checkpoint(run_id: dict, model, path: Path, epoch: int, opt, gen, hist: PhaseHistory, best: dict) -> None:
     save_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id, epoch, torch_to_arrays(model), opt, gen, hist,
                     HISTORY_LISTS, best, "PAE training checkpoint", PhaseError)
 
 
-def _load_checkpoint(path: Path, run_id: dict, pcfg: PaeConfig, model, opt, gen):
+def _load_checkpoint(run_id: dict, pcfg: PaeConfig, model, path: Path, opt, gen):
     """Restore model, optimiser and generator from ``path`` (`felis.learning.common.checkpoints`); returns
     (next epoch, history, best state). PhaseError (one line) for a corrupt checkpoint or one from another run."""
     return load_checkpoint(path, (CHECKPOINT_ID, CHECKPOINT_SCHEMA), run_id,
