@@ -45,7 +45,7 @@ wobbling walk with small parameter changes). RISE 0.3 is a brisk lift (the safet
 trims its peak at ≥ 2 Hz); LEAD_S 40 ms matches the servo lag; BACKWARD 0.12 cancels a residual forward
 creep (0.6 → < 0.2 cm/s, an empirical correction). Each constant (and lift) moved alone by ±20 % still
 passes the tests.
-Measured in tests/test_stepping.py (6 s at 2 Hz, 4 s at 1.5 and 2.5 Hz; ratios after the ramp):
+Measured in tests/controllers/test_stepping.py (6 s at 2 Hz, 4 s at 1.5 and 2.5 Hz; ratios after the ramp):
   1.5 Hz: one diagonal alone down 64 %, no swinging foot in contact 89 %, drift 1.6 cm, tilt ≤ 4.9°
   2.0 Hz: one diagonal alone down 79 %, no swinging foot in contact 91 %, drift 1.7 cm, tilt ≤ 4.3°
   2.5 Hz: one diagonal alone down 81 %, no swinging foot in contact 93 %, drift 2.6 cm, tilt ≤ 3.9°

@@ -11,7 +11,7 @@ Conventions (the same everywhere in felis, the IMU's and MuJoCo's):
 
 These run on the control loop's hot path (one quaternion per tick, a few µs budget), so they are
 written on Python floats and numpy; ``scipy.spatial.transform.Rotation`` (their reference in
-``tests/test_rotations.py``) costs ~20 µs a call to build, which is for off-line work.
+``tests/core/test_rotations.py``) costs ~20 µs a call to build, which is for off-line work.
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ K(ŝ, ŝ') = exp(−g ‖ŝ − ŝ'‖²) (g = ``gamma``; "scale" is 1 / (m · v
 one-vs-one over the strategies, on the standardised features and labels. Deterministic
 (no probability calibration).
 
-Measured (``tests/test_balance_select.py``: a synthetic outcome model on 4 features, 600 training
+Measured (``tests/learning/test_balance_select.py``: a synthetic outcome model on 4 features, 600 training
 demonstrations with 5% corrupted labels, 1000 clean held-out pushes): acceptable-strategy accuracy
 (tol 0.05) kNN 0.970 (exact 0.869), SVM 0.993 (exact 0.903). Denoising with the defaults (k = 7,
 γ = 0.3) is neutral there (0.971 without): the distance-weighted vote already outvotes isolated

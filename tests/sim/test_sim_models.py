@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
-MODELS = Path(__file__).resolve().parents[1] / "sim/models"
+MODELS = Path(__file__).resolve().parents[2] / "sim/models"
 CAT_XML = MODELS / "cat.xml"
 ARM_XML = MODELS / "arm.xml"
 

@@ -25,7 +25,7 @@ from felis.learning.landing.samples import (
     rule_score,
 )
 
-SHIPPED = Path(__file__).resolve().parents[1] / "learning" / "weights" / "landing_samples.json"
+SHIPPED = Path(__file__).resolve().parents[2] / "learning" / "weights" / "landing_samples.json"
 
 
 @pytest.fixture(scope="module")

@@ -370,7 +370,7 @@ def test_demo_out_is_a_file(tmp_path):
 
 # --------------------------------------------------------------------------------------- bad input
 
-_ARM = (Path(__file__).resolve().parents[1] / "felis" / "robots" / "arm.toml").read_text()
+_ARM = (Path(__file__).resolve().parents[2] / "felis" / "robots" / "arm.toml").read_text()
 
 BAD_INPUT = [
     # id, input files, argv, exit code, words the message must contain

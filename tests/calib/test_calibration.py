@@ -34,7 +34,7 @@ from felis.errors import CalibrationError
 from felis.servos import RAD_PER_TICK
 from felis.spec import load_spec
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(autouse=True)
