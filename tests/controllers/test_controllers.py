@@ -24,21 +24,6 @@ def test_same_controller_object_runs_on_cat_and_arm():
             assert err.max() < tol, f"{name}: {dict(zip(spec.names, err.round(3), strict=True))}"
 
 
-def test_controllers_do_not_import_backends():
-    import ast
-    from pathlib import Path
-
-    import felis.controllers as pkg
-
-    for path in Path(pkg.__file__).parent.glob("*.py"):
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
-                [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
-            for n in names:
-                assert not n.startswith(("felis.sim", "felis.drivers", "mujoco", "dynamixel_sdk")), (path, n)
-
-
 def test_min_jerk_profile():
     assert min_jerk(0) == 0 and min_jerk(1) == 1 and min_jerk(0.5) == pytest.approx(0.5)
     assert min_jerk(-1) == 0 and min_jerk(2) == 1
