@@ -10,7 +10,7 @@ its whole pipeline is evaluated on the held-out test trajectories. Rows:
 - input length: the Posture Estimator fed 1 frame (v_i), 3 frames (v_{i−10}, v_{i−5}, v_i: no Motion
   Predictor) or the paper's 5 (with the predicted v_{i+5}, v_{i+10}); they share the reference run's
   Motion Predictor;
-- network type: LSTM against an MLP of similar parameter count (`ik_net.mlp_width`).
+- network type: LSTM against an MLP of similar parameter count (`ik.infer.mlp_width`).
 
 Each variant is trained once per seed (initialisation and batch order; the corpus is the same); the
 table gives mean ± standard deviation over the seeds. Prints a Markdown table (also written to

@@ -2,9 +2,9 @@
 
 **Episodes per second, one process.** An episode is one job of `felis train landing`: a seeded random
 simple behaviour (`random_simple`) dropped in one of the 7 training orientations from 3 m, 200 ticks
-at 100 Hz, 1 kHz physics (`landing_train.run_rollout`: `LandingSim.run` with the `LandingController`,
+at 100 Hz, 1 kHz physics (`landing.task.run_rollout`: `LandingSim.run` with the `LandingController`,
 the `LandingRecorder` sub-step hook and the motion recorder), timed two ways: the *rollout* alone, and
-the whole *job* the evaluator maps (`landing_train.evaluate_job`: the rollout, then its features and
+the whole *job* the evaluator maps (`landing.task.evaluate_job`: the rollout, then its features and
 scores D and S). The anchor is the loop a MuJoCo user would write by hand on the same compiled model
 (a copy, armed gains and servo parameters included): reset, the same initial state, then per tick set
 ``ctrl`` and call ``mj_step`` once per physics step. Its ``ctrl`` per tick is the one felis wrote in

@@ -21,7 +21,7 @@ also reaches.
    trained on), from 3 m.
 
 Baselines on the same drops: passive (hold the release pose), the hand-written rules (the tuned spine
-rule of the nearest training orientation, `landing_samples`), and the shipped policy
+rule of the nearest training orientation, `landing.samples`), and the shipped policy
 (``learning/weights/landing.npz``; made with ``fitness="landing"`` and the general stage, see
 docs/landing.md). Deterministic per seed.
 

@@ -3,6 +3,15 @@
 They import only `felis` core, `felis.scenarios` and the inference modules of `felis.learning`
 (`landing.policy`, `ik.solver`, `phase.estimator`, `balance.selector`: numpy, no torch), never a backend,
 so each runs unchanged on simulated and real robots. `make_controller` builds one by name for the CLI.
+
+    pose.py          PoseController: hold, stand, sit, or any pose with time-based interpolation
+    stepping.py      SteppingController: the cat trots in place
+    balance.py       BalanceMonitor: the XCoM balance monitor (seed 004)
+    reactions.py     protective reactions and ReactiveController, which runs them on the monitor's alarm
+    landing.py       LandingController: a falling cat's policy (seed 000)
+    arm_track.py     ArmTrackController: the arm tracking a tool-point trajectory with the learned IK (seed 001)
+    arm_posture.py   the arm's posture rule: the joint angles a demonstrator gives a tool-point path
+    trajectories.py  Trajectory: the arm's tool-point trajectories (builtin, CSV files)
 """
 
 from __future__ import annotations

@@ -11,6 +11,8 @@ Encoder ticks exist only inside this package; everything it hands upward is SI a
     dynamixel/port.py          the bus's serial port: exclusive open, its holder, timeouts, the SDK busy flag
     dynamixel/group.py         sync / fast-sync / bulk transfers, per-servo counters
     dynamixel/robot.py         DynamixelRobot: the HAL on a bus (+ IMU)
-    virtual/                   VirtualServo, dispatch, FaultPlan, VirtualBus (pty server), spawn (child process)
+    virtual/                   VirtualServo, dispatch, FaultPlan, VirtualBus (pty), VirtualImu, spawn (child process)
     imu/                       RVC frame codec and parser, ImuReader, RvcEmulator, apply_mounting, SensorMount
+    framing.py                 skip_to_header: the resynchronising step of the packet reader and the RVC parser
+    ports.py                   open_ports: the one port opener (a device, ``virtual`` or $FELIS_PORT; the IMU's port)
 """

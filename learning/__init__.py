@@ -13,7 +13,8 @@
 - `balance/` — the strategy selector (seed 004): `selector` (inference: case base, kNN selector),
   `compare` (the SVM, accuracies), `evaluate` (push experiments), `train`.
 - `common/` — `evaluator` (process pool or Ray), `checkpoints`, `curves` (the epoch loop and learning
-  curves of the torch nets), `jsonable` (metadata to JSON).
+  curves of the torch nets), `torchstate` and `weights` (torch weights as numpy arrays, the weights file),
+  `jsonable` (metadata to JSON).
 
 Controllers import only the inference modules (numpy, no torch, no simulation); training, data and
 evaluation modules may import controllers and the simulation. Shipped weights are in `weights/`.

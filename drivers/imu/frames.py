@@ -43,6 +43,10 @@ and back::
 
     roll  = atan2(2(w x + y z), 1 − 2(x² + y²))
     pitch = asin(2(w y − z x))                       (clipped to [−1, 1])
+    yaw   = atan2(2(w z + x y), 1 − 2(y² + z²))      (wrapped to [−π, π))
+
+At pitch = ±90° (gimbal lock) only yaw ∓ roll is defined; we then report roll = 0 and
+yaw = 2·atan2(z, w). The conversions are `felis.rotations.quat_from_ypr` and `felis.rotations.ypr_from_quat`.
 """
 
 from __future__ import annotations

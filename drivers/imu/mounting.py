@@ -1,11 +1,9 @@
 """Where the IMU sits in the body.
 
-impact (a landing's lasts less than one 10 ms sample) is kept, since the mean preserves the velocity
-change Σ a·Δt over the frames, where taking only the latest frame would drop it. `latest` peeks at
-the latest frame alone.
-
-Mounting
---------
+The sensor sits in the robot's body at a rotation q_bs and its orientation drifts, so a still sensor
+reports a constant rate (the bias). `apply_mounting` turns a sensor-frame reading into the body frame
+and removes the bias (`DynamixelRobot` applies the calibration's values to every reading; they are
+estimated by `felis.calib.imu.estimate_mounting`); `SensorMount` does the opposite for emulators.
 """
 
 from __future__ import annotations

@@ -1,9 +1,5 @@
 """`ImuReader`: a BNO08x in UART-RVC mode on a serial port, read by a thread.
 
-
-At pitch = ±90° (gimbal lock) only yaw ∓ roll is defined; we then report roll = 0 and
-yaw = 2·atan2(z, w).
-
 Body rates
 ----------
 RVC mode has no gyro output. `ImuReader` estimates the body rate from two consecutive orientations:
@@ -20,6 +16,10 @@ Accelerometer between control ticks
 -----------------------------------
 A control loop at the sensor's rate still sees two frames arrive between some ticks and none between
 others (receive-time jitter, above). `ImuReader.read` therefore reports the mean accelerometer of
+every frame received since the previous ``read()``, with the latest orientation and rate: a short
+impact (a landing's lasts less than one 10 ms sample) is kept, since the mean preserves the velocity
+change Σ a·Δt over the frames, where taking only the latest frame would drop it. `latest` peeks at
+the latest frame alone.
 """
 
 from __future__ import annotations

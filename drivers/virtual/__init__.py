@@ -14,6 +14,7 @@ device) and talks to the servos exactly as through a USB adapter (``shared/refer
     backend.py    HornBackend: the seam through which a simulation drives the horns (felis.sim.servo_in_loop)
     imu.py        VirtualImu: the emulated BNO08x of a backed robot, on a second pty
     process.py    spawn / VirtualBusProcess: the bus in a child process; main / serve: the child
+    __main__.py   ``python -m felis.drivers.virtual OPTIONS_JSON``: the child's entry
 """
 
 from felis.drivers.virtual.backend import BackendFactory, HornBackend

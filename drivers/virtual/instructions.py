@@ -41,7 +41,7 @@ FACTORY_RESET) Goal Position is set to the Present Position, as X-series firmwar
 torque without writing a goal holds the horn where it is. CLEAR answers OK; ▸ with the multi-turn
 magic (01 44 58 4C 22) in extended position mode it drops whole turns from the horn angle.
 REG_WRITE validates and stores one write and sets Registered Instruction (addr 69); ACTION applies
-it (and answers the write's error if, in between, it became invalid). ▸ Bus Watchdog, Profile
+it (and answers the write's error if, in between, it became invalid). ▸ Profile
 Acceleration, time-based profiles (Drive Mode bit 2), PWM and current control modes are not
 modelled: in modes 0 and 16 the horn holds still.
 """

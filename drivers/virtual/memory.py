@@ -3,7 +3,7 @@
 Every address is taken from `felis.drivers.dynamixel.controltable` by item name (`address`): the emulator
 runs on module-level ints in its hot path, but no number here is typed twice. A write is checked once per
 (model, address, length) into a `WritePlan` (length and extent, then access; see the servo's rules in
-`felis.drivers.virtual`), cached for every later write of the same shape. `hardware_bits` turns names
+`felis.drivers.virtual.instructions`), cached for every later write of the same shape. `hardware_bits` turns names
 (``"overload"``) into Hardware Error Status bits, for fault injection and tests.
 """
 

@@ -15,7 +15,7 @@ Drops (``Episode.drop`` = height m, roll°, pitch°, yaw°; `felis.sim.scenarios
   (`felis.sim.landing.assess_landing`: the landing verdict of `felis.scenarios.verdicts`, the same as
   ``felis eval landing``'s, with tilt, feet down, impact, peak force).
 * ``backend="dxl"`` with ``port="virtual"``: the virtual bus's simulation holds the robot in the air
-  (`felis.drivers.virtual`, ``--drop``) and releases it when torque first comes on, so the run goes
+  (`felis.sim.servo_in_loop`, ``--drop``) and releases it when torque first comes on, so the run goes
   through the whole hardware path. The result reports what that path can know: the drop and the final
   tilt from the IMU (``final_tilt_deg``: the angle between the IMU's up-axis and vertical at the last
   tick; sim drops report it too, for comparison), not the simulator's landing judge.

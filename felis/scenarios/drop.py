@@ -3,7 +3,7 @@
 A drop releases the robot at rest, turned by roll, pitch, yaw (degrees, R = Rz(yaw)·Ry(pitch)·Rx(roll),
 x forward, y left, z up), with its lowest point ``height_m`` above the floor; free fall to the first
 contact then takes t = √(2h/g). `felis.sim.scenarios.apply_drop` puts a simulated robot there; the
-virtual bus holds it there until torque comes on (`felis.drivers.virtual`).
+virtual bus holds it there until torque comes on (`felis.sim.servo_in_loop`).
 
 Limits (`check_limits`, the one place they are checked): 0 < height ≤ `MAX_DROP_HEIGHT` m, each angle
 within ±`MAX_ANGLE_DEG`. Three front doors read a drop and share it — `make_drop` (numbers: the CLI and

@@ -1,18 +1,19 @@
 """Demonstration data for the arm's IK LSTM (seed 001 §3.1): tool-point trajectories, the joint angles a
 demonstrator would use for them, and the network's input/output windows.
 
-**Demonstrator.** A tool point alone leaves the tool pitch φ free (`armkin`); the demonstrator fixes it
-by a posture rule (`posture_pitch`), a smooth function of the target and of its vertical velocity (a
-person leads with the tool), and solves the closed form on the elbow-up branch (`demo_joints`). The
-network thus learns one smooth, human-like posture per moment of a motion rather than an arbitrary
-member of the redundant family; the velocity term makes it depend on more than the current frame.
+**Demonstrator.** A tool point alone leaves the tool pitch φ free (`felis.armkin`); the demonstrator fixes it
+by a posture rule (`felis.controllers.arm_posture.posture_pitch`), a smooth function of the target and of
+its vertical velocity (a person leads with the tool), and solves the closed form on the elbow-up branch
+(`arm_posture.demo_joints`). The network thus learns one smooth, human-like posture per moment of a
+motion rather than an arbitrary member of the redundant family; the velocity term makes it depend on
+more than the current frame.
 
-**Workspace** of the demonstrations (`in_workspace`): d = |p − S| / REACH ≤ 0.92, horizontal distance
+**Workspace** of the demonstrations (`arm_posture.in_workspace`): d = |p − S| / REACH ≤ 0.92, horizontal distance
 from the joint1 axis r ≥ 0.08 m, z ≥ 0.03 m, and the rule's pose within the joint limits by 0.05 rad
 with the elbow at least 0.15 rad from stretched (δ ≥ 0.15, away from the singular straight arm).
 
-**Trajectories** (`Trajectory`, 100 Hz): minimum-jerk reaches with pauses, back-and-forth lines,
-circles in various planes, pick-and-place (lift, arc, lower) and random splines, 4–12 s each, tool
+**Trajectories** (`felis.controllers.trajectories.Trajectory`, 100 Hz): minimum-jerk reaches with pauses,
+back-and-forth lines, circles in various planes, pick-and-place (lift, arc, lower) and random splines, 4–12 s each, tool
 speed ≤ 0.35 m/s, acceleration ≤ 2.5 m/s², every joint ≤ 4.5 rad/s, C² in time. A candidate with any
 frame outside these bounds is rejected and drawn again from the same generator (deterministic).
 `make_corpus` draws trajectory i from ``default_rng([seed, i])``, so a corpus is bit-identical for a
@@ -23,8 +24,9 @@ over the limb length; joint angles are encoded as (sin q, cos q) pairs (no wrap 
 by atan2. `windows` cuts (input frames, output frames) at fixed frame offsets around every frame,
 clamping indices to the trajectory (a stream that starts and ends at rest).
 
-Files: corpora as ``.npz`` (no pickle), trajectories as CSV ``t,x,y,z`` at 100 Hz, recorded
-demonstrations from run logs (`recorded_demos`). Units: metres, seconds, radians.
+Files: corpora as ``.npz`` (no pickle, `felis.learning.ik.corpus`), trajectories as CSV ``t,x,y,z`` at 100 Hz
+(`felis.controllers.trajectories`), recorded demonstrations from run logs (`corpus.recorded_demos`).
+Units: metres, seconds, radians.
 """
 
 

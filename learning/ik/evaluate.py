@@ -7,7 +7,7 @@ For every frame the pipeline (`IkSolver`) is streamed as in the controller, and 
 - ``limit_violations``: refined poses outside the joint limits before the final clamp (and the raw
   network's, for information);
 - smoothness: RMS jerk per joint, the third difference d³q/dt³ at 100 Hz, against the demonstrated
-  joint trajectories where they exist (the pitch rule of `ik_data.posture_pitch`), and the largest
+  joint trajectories where they exist (the pitch rule of `arm_posture.posture_pitch`), and the largest
   step per tick;
 - posture: |φ − φ_demo|, how far the chosen tool pitch is from the demonstrator's (`posture_pitch`
   with the path's velocity);

@@ -1,5 +1,5 @@
 """The deep IK networks: an LSTM (or a same-size MLP) over a few frames of normalised wrist targets,
-its fast numpy inference, and the weights file that ships it.
+in torch, and the weights file that ships it (its numpy inference is `felis.learning.ik.infer`).
 
 Method (seed 001 §3.1.2, ``shared/reference/methods.md`` "Deep IK solver"): the input is a short
 sequence of k frames, each the shoulder→tool vector divided by the limb length (n_in = 3 values);

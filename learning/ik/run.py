@@ -1,15 +1,15 @@
 """`felis train ik`: demonstrations → Motion Predictor and Posture Estimator → weights and results.
 
-One run (seed 001 §3.1): generate the deterministic demonstration corpus (`ik_data.make_corpus`),
+One run (seed 001 §3.1): generate the deterministic demonstration corpus (`data.make_corpus`),
 split it by whole trajectories into train / validation / test, cut every frame into windows, train
 the Motion Predictor (v_{i−10}, v_{i−5}, v_i → v_{i+5}, v_{i+10}) and the Posture Estimator (the
 five frames → joint angles of frames i … i+5, as sin/cos), save both in one ``.npz`` weights file,
-then evaluate the whole pipeline on the held-out test trajectories (`ik_eval.evaluate`). Writes
+then evaluate the whole pipeline on the held-out test trajectories (`evaluate.evaluate`). Writes
 beside the weights: ``<name>.results.json`` and ``<name>.curves.png`` (learning curves).
 
 Variants for the paper's ablations: ``pe_frames`` 1 (v_i), 3 (v_{i−10}, v_{i−5}, v_i: no Motion
 Predictor needed) or 5 (the paper's), and ``kind`` "lstm" or "mlp" (a multilayer perceptron of
-similar size, `ik_net.SeqNet`).
+similar size, `net.SeqNet`).
 """
 
 from __future__ import annotations

@@ -28,14 +28,14 @@ class TrainConfig:
     length of each stage. ``elite_frac``: the best floor(frac·N) (at least 1) pass unchanged;
     ``elimination_frac``: the worst floor(frac·N) are replaced by random immigrants (§5). ``tournament``:
     tournament size for picking parents among the survivors; ``p_crossover``: chance a child has two
-    parents. ``p_weight``, ``sigma``, ``p_structure``, ``max_hidden``: `landing_nets.mutate`'s settings
+    parents. ``p_weight``, ``sigma``, ``p_structure``, ``max_hidden``: `nets.mutate`'s settings
     (``max_hidden`` also bounds random units). ``pca_dims``: components of the PCA (eq. 4).
     ``orientations``: indices into the samples file (empty: all of them). ``use_similarity``: rank by
     (f, D, S) (eq. 10); False ranks by f alone (§6.6.1, experiment 1). ``smooth_upright``: f uses the
     upright ramp instead of the 0/1 test. ``steps``: rollout length in 10 ms ticks (§6.4: 200).
-    ``samples``: motion samples file (`landing_samples.load_samples`; "" = `DEFAULT_SAMPLES`).
-    ``fitness``: "eq9" (the paper's eq. 9 × upright, `landing_nets.fitness`) or "landing" (our
-    `landing_nets.landing_score`, partial credit for each clause of the `landed` rule). ``one_net``: instead
+    ``samples``: motion samples file (`samples.load_samples`; "" = `DEFAULT_SAMPLES`).
+    ``fitness``: "eq9" (the paper's eq. 9 × upright, `nets.fitness`) or "landing" (our
+    `nets.landing_score`, partial credit for each clause of the `landed` rule). ``one_net``: instead
     of simple then complex, one simple behaviour evolves on every training orientation at once for
     ``generations_simple + generations_complex`` generations, ranked by eq. 11 (§6.6.2's baseline).
     ``generations_general`` (0 = none): a last stage, ours, that evolves one simple behaviour on

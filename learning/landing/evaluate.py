@@ -13,8 +13,9 @@ The rule needs the cat's standing waist height: `standing_waist_height` measures
 controller, so it lives here, not in `felis.sim`).
 
 Policies, by name: ``passive`` holds the pose the cat has at release (`make_controller("hold")`),
-``stand`` moves to the stand pose (`make_controller("stand")`), and a file path will name a trained
-landing policy once ``felis train landing`` exists.
+``stand`` moves to the stand pose (`make_controller("stand")`), ``rules`` runs the hand-written spine rule of
+the nearest training orientation, ``shipped`` the shipped trained policy, and a file path a trained policy
+(`check_policy`).
 
 `run_drops` runs a list of drops in a process pool (one compiled model per worker, reset between
 drops); results are in drop order and identical whatever the worker count, since each episode is

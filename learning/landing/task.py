@@ -102,7 +102,7 @@ def score(task: Task, k: int | tuple, r: Rollout) -> np.ndarray:
 
 
 def _landing(r: Any) -> float:
-    """`landing_score` of a `landing_samples.Rollout` (its outcome and per-tick up-axes)."""
+    """`landing_score` of a `samples.Rollout` (its outcome and per-tick up-axes)."""
     o = r.outcome
     n = len(r.up_z)
     if o.touchdown_s is None:
@@ -116,7 +116,7 @@ def _landing(r: Any) -> float:
 
 
 def _rollout(sim, orientation: Sequence[float], policy, height_m: float, steps: int) -> Rollout:
-    """A rollout of ``steps`` ticks of 10 ms (`landing_samples.rollout`) as the scoring needs it."""
+    """A rollout of ``steps`` ticks of 10 ms (`samples.rollout`) as the scoring needs it."""
     r = rollout(sim, orientation, policy, height_m, steps)
     if r.outcome.why == "physics diverged":
         return Rollout(r.vectors, r.heights_mm, float("nan"), complete=False)
@@ -157,7 +157,7 @@ def evaluate_job(job: tuple[SimpleBehaviour | ComplexBehaviour, int | tuple]) ->
 
 
 def run_rollout(sim, task: Task, policy, k: int | tuple) -> Rollout:
-    """The rollout of ``policy`` on training orientation ``k`` of ``task`` (`landing_samples.rollout`, the
+    """The rollout of ``policy`` on training orientation ``k`` of ``task`` (`samples.rollout`, the
     samples' own recording, for ``task.steps`` ticks), or on a general-stage drop ``k`` = (roll, pitch,
     yaw, height) for `GENERAL_STEPS` ticks."""
     if not isinstance(k, int | np.integer):

@@ -10,15 +10,15 @@ sample (all orientations in the samples file, eq. 3–4); each training sample k
 TF_k (eq. 5–6).
 
 **One evaluation** (individual, training orientation k): a rollout of ``steps`` ticks at 100 Hz from the
-sample's orientation and height (`landing_samples.rollout`, the recording the samples were made with; any
-other length through `_rollout`, the same recording) gives the waist heights (mm), the segment vectors
+sample's orientation and height (`samples.rollout`, the recording the samples were made with; any
+other length through `task._rollout`, the same recording) gives the waist heights (mm), the segment vectors
 and the upper body's up-axis z at the end; then
 
     f = eq. 9 × upright(up_z)    D = eq. 7 (SF, SF_k)    S = eq. 8 (TF, TF_k)
 
-(`landing_nets.fitness`; ``smooth_upright`` uses its ramp), and, for the record only, whether the drop
+(`nets.fitness`; ``smooth_upright`` uses its ramp), and, for the record only, whether the drop
 meets the issue's `landed` rule (`felis.scenarios.verdicts`: feet only for 0.5 s after touchdown, tilt ≤ 30°,
-waist up). A rollout whose physics diverged gets f = 0 and D = S = `DIVERGED` (worse than any real
+waist up). A rollout whose physics diverged gets f = 0 and D = S = `task.DIVERGED` (worse than any real
 motion). The marks of one evaluation are (f, D, S, up_z, landed).
 
 **Simple stage.** One population of simple behaviours per training orientation. Each generation: all
@@ -51,7 +51,7 @@ generations_complex`` generations: the same number of rollouts as simple then co
 
 **Landing fitness** (``fitness="landing"``, ours). Eq. 9 rewards a steady, high waist and an upright body
 at the end, not feet-first contact; nets trained on it learn to hit the floor body first and roll back
-up, which the issue's `landed` rule rejects. `landing_nets.landing_score` ∈ [0, 5] gives one point per
+up, which the issue's `landed` rule rejects. `nets.landing_score` ∈ [0, 5] gives one point per
 clause of that rule, each with partial credit: the mean up-axis z at touchdown (air righting), the share
 of the 0.5 s window with only feet on the floor, the tilt at its end against 30°, the waist against half
 its standing height, and 1 if it landed. D and S still rank ties (eq. 10).
