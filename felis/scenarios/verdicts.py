@@ -41,7 +41,8 @@ def landed(foot_only: bool, tilt_deg: float, waist_m: float, standing_waist_m: f
 
 @dataclass(frozen=True)
 class LandingTruth:
-    """What happened in a drop, one entry per physics step (as recorded, in time order).
+    """What happened in a drop, one entry per physics step in time order (`felis.sim.landing.LandingRecorder`
+    records from touchdown to touchdown + `WINDOW_S`; earlier or later steps may be given and change nothing).
 
     ``floor_body``: a body touching the floor at that step (an index into ``bodies``; −1: none);
     ``off_foot_body``: a body other than a foot touching the floor (−1: none, i.e. feet only or nothing).
