@@ -12,6 +12,10 @@ callable ``(it, t) -> (12,)`` with t the time since the controller's reset (a ha
 Height: ``State.height`` where the backend knows it (simulation). On hardware the waist height is not
 measured, so it is predicted from the drop: h(t) = h0 − ½ g (t − t0)² from the reset (the release) with
 h0 = ``drop_height`` (m), floored at 0: free fall is exact until the first touch.
+
+`LandingBatch` is the same controller for a batch of simulated cats (`felis.sim.batch.DropBatch`): one
+numpy call per tick for every cat, each row driven by its own policy (``policies[index[row]]``), with the
+height measured. `PerCat` runs any HAL controller once per cat (the baselines ``passive`` and ``stand``).
 """
 
 from __future__ import annotations
@@ -21,8 +25,14 @@ from collections.abc import Callable
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.hal import Command, State
-from felis.learning.landing.policy import JOINTS, LANDING_HEIGHT_M, landing_rule, normalise_inputs
+from felis.hal import Command, Imu, State
+from felis.learning.landing.policy import (
+    JOINTS,
+    LANDING_HEIGHT_M,
+    landing_rule,
+    normalise_inputs,
+    normalise_inputs_many,
+)
 from felis.rotations import G
 from felis.spec import RobotSpec
 
@@ -87,3 +97,75 @@ class LandingController:
 
     def summary(self) -> dict:
         return {"held_ticks": self.held}
+
+
+class LandingBatch:
+    """`LandingController` for B simulated cats at once (module doc): ``policies[index[b]]`` drives cat b.
+
+    A policy is a behaviour (``velocities_many(IT (G, 15)) -> (G, 12)``) or a callable ``(IT (G, 15), t (G,),
+    rows (G,)) -> (G, 12)`` with t the time since the reset and rows the cats' indices in the batch (an
+    open-loop motion per cat). The rows of each policy are evaluated together.
+    """
+
+    def __init__(self, spec: RobotSpec, policies, index=None):
+        if tuple(spec.names) != JOINTS:
+            raise ParameterError(f"landing: the policy drives the cat's joints, not {spec.name}'s")
+        self.spec = spec
+        self.policies = list(policies)
+        self.index = None if index is None else np.asarray(index, dtype=int)
+        self._spine = np.array([spec.index("spine_pitch"), spec.index("spine_yaw")])
+        self.held = 0
+
+    def reset(self, t: np.ndarray, q: np.ndarray) -> None:
+        B = len(t)
+        index = np.zeros(B, dtype=int) if self.index is None else self.index
+        if index.shape != (B,) or (B and (index.min() < 0 or index.max() >= len(self.policies))):
+            raise ParameterError(f"landing: {B} cats need {B} policy indices into {len(self.policies)} policies")
+        self._groups = [(p, np.flatnonzero(index == i)) for i, p in enumerate(self.policies)]
+        self._q = np.clip(np.asarray(q, dtype=float), self.spec.lower, self.spec.upper)
+        self._t0 = np.array(t, dtype=float)
+        self._t = np.array(t, dtype=float)
+
+    def __call__(self, t: np.ndarray, q: np.ndarray, quat: np.ndarray, h: np.ndarray) -> np.ndarray:
+        dt = np.maximum(0.0, t - self._t)
+        self._t = np.array(t, dtype=float)
+        it = normalise_inputs_many(q, quat, h)
+        v = np.empty_like(self._q)
+        since = self._t - self._t0
+        for policy, rows in self._groups:
+            if rows.size == 0:
+                continue
+            if callable(getattr(policy, "velocities_many", None)):
+                v[rows] = policy.velocities_many(it[rows])
+            else:
+                v[rows] = policy(it[rows], since[rows], rows)
+        ok = np.isfinite(v).all(axis=1)
+        self.held += int(np.count_nonzero(~ok))
+        self._q[ok] = np.clip(self._q[ok] + v[ok] * dt[ok, None], self.spec.lower, self.spec.upper)
+        low = np.flatnonzero(np.asarray(h) < LANDING_HEIGHT_M)
+        if low.size:
+            self._q[np.ix_(low, self._spine)] = 0.0
+        return self._q.copy()
+
+
+class PerCat:
+    """Any HAL controller run once per cat of a batch (`felis.sim.batch.DropBatch`): ``make(b)`` gives a fresh
+    one for cat b; each sees a `State` of the time, joint angles, IMU attitude and waist height."""
+
+    def __init__(self, spec: RobotSpec, make: Callable[[int], object]):
+        self.spec, self.make = spec, make
+
+    def _state(self, t, q, quat, h) -> State:
+        z = np.zeros(3)
+        return State(t=float(t), q=np.array(q), dq=np.zeros(len(q)), imu=Imu(quat=np.array(quat), gyro=z, accel=z),
+                     height=float(h))
+
+    def reset(self, t: np.ndarray, q: np.ndarray) -> None:
+        self._cats = [self.make(b) for b in range(len(t))]
+        quat = np.array([1.0, 0.0, 0.0, 0.0])
+        for i, c in enumerate(self._cats):
+            c.reset(self.spec, self._state(t[i], q[i], quat, np.inf))
+
+    def __call__(self, t: np.ndarray, q: np.ndarray, quat: np.ndarray, h: np.ndarray) -> np.ndarray:
+        return np.array([np.asarray(c(self._state(t[i], q[i], quat[i], h[i])).q, dtype=float)
+                         for i, c in enumerate(self._cats)])

@@ -187,3 +187,37 @@ def roll_pitch(quat: Quat) -> tuple[float, float]:
     s = 2.0 / n
     r20, r21, r22 = s * (x * z - w * y), s * (y * z + w * x), 1.0 - s * (x * x + y * y)
     return math.atan2(r21, r22), math.asin(max(-1.0, min(1.0, -r20)))
+
+
+def roll_pitch_many(quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`roll_pitch` of (B, 4) quaternions: two (B,) arrays. Any zero or non-finite row raises ValueError."""
+    q = np.asarray(quat, dtype=float)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    n = w * w + x * x + y * y + z * z
+    if not np.all((n > 0) & np.isfinite(n)):
+        raise ValueError("an orientation quaternion is zero or not finite")
+    s = 2.0 / n
+    r20, r21, r22 = s * (x * z - w * y), s * (y * z + w * x), 1.0 - s * (x * x + y * y)
+    return np.arctan2(r21, r22), np.arcsin(np.clip(-r20, -1.0, 1.0))
+
+
+def matrix_quats(R: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions (w, x, y, z) of (n, 3, 3) rotation matrices, vectorised (the inverse of
+    `quat_matrix`). Each row takes the largest of 1 + tr R, 1 + 2R₀₀ − tr R, … as its pivot (Shepperd's
+    method), so no division is by a small number; the sign makes w ≥ 0."""
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    r00, r11, r22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    tr = r00 + r11 + r22
+    piv = np.stack([1 + tr, 1 + 2 * r00 - tr, 1 + 2 * r11 - tr, 1 + 2 * r22 - tr], axis=1)
+    k = piv.argmax(axis=1)
+    s = np.sqrt(np.maximum(piv[np.arange(len(R)), k], 1e-300))  # = 4·|component k| / 2 … (2·|q_k|)
+    d21, d02, d10 = R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]
+    s21, s02, s10 = R[:, 2, 1] + R[:, 1, 2], R[:, 0, 2] + R[:, 2, 0], R[:, 1, 0] + R[:, 0, 1]
+    q = np.empty((len(R), 4))
+    cand = [np.stack([s * s, d21, d02, d10], 1), np.stack([d21, s * s, s10, s02], 1),
+            np.stack([d02, s10, s * s, s21], 1), np.stack([d10, s02, s21, s * s], 1)]
+    for i in range(4):
+        m = k == i
+        q[m] = cand[i][m] / (2 * s[m, None])
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q

@@ -109,6 +109,18 @@ class SafetyLayer:
                 self.counters.step_clamps += 1
         return Command(q=out, dq_max=dq_max, torque=command.torque)
 
+    def filter_many(self, q: np.ndarray, last: np.ndarray) -> np.ndarray:
+        """`filter` for a batch of robots at once (`felis.sim.batch`): ``q`` and ``last`` (the targets each
+        robot sent last) are (B, n); a row with a non-finite target holds its last row. No counters."""
+        q = np.asarray(q, dtype=float)
+        lo = np.maximum(self.lower, last - self.max_step)
+        hi = np.minimum(self.upper, last + self.max_step)
+        out = np.minimum(np.maximum(q, lo), hi)
+        bad = ~np.isfinite(q).all(axis=1)
+        if bad.any():
+            out[bad] = last[bad]
+        return out
+
     def sent(self, command: Command) -> None:
         """Record what the robot actually sent: the reference for the next step limit and hold."""
         self._last = command

@@ -80,18 +80,22 @@ def model_path(spec: RobotSpec) -> Path:
     return path
 
 
-def load_model(path: str | Path, fixed_base: bool = False) -> mujoco.MjModel:
-    """Compile an MJCF file; ``fixed_base`` removes free joints and lifts their bodies by ``STAND_LIFT_M``.
+def load_model(path: str | Path, fixed_base: bool = False,
+               edit: Callable[[mujoco.MjSpec], None] | None = None) -> mujoco.MjModel:
+    """Compile an MJCF file; ``fixed_base`` removes free joints and lifts their bodies by ``STAND_LIFT_M``;
+    ``edit`` changes the `mujoco.MjSpec` before it is compiled (e.g. `felis.sim.batch` adds sensors).
 
     Keyframes lose the removed joints' 7 qpos / 6 qvel entries (the body stays where the MJCF puts it,
     lifted). Errors are `ModelMismatch` with MuJoCo's first line.
     """
     path = Path(path)
     try:
-        if not fixed_base:
+        if not fixed_base and edit is None:
             return mujoco.MjModel.from_xml_path(str(path))
         spec = mujoco.MjSpec.from_file(str(path))
-        free = [j for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_FREE]
+        if edit is not None:
+            edit(spec)
+        free = [j for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_FREE] if fixed_base else []
         if free:
             before = spec.compile()
             drop_q, drop_v = [], []
@@ -127,12 +131,15 @@ class MujocoRobot(RobotBase):
         fixed_base: weld a floating-base robot to the world (its free joint removed at load), with
             its root body lifted by ``STAND_LIFT_M``: the robot hangs on a stand, legs clear of the
             floor, as for system identification. No effect on a fixed-base model.
+        edit: a function changing the model's `mujoco.MjSpec` before it compiles (`load_model`).
     """
 
     def __init__(self, spec: RobotSpec, model: str | Path | None = None,
-                 servo: dict[str, ServoParams] | None = None, quantize: bool = True, fixed_base: bool = False):
+                 servo: dict[str, ServoParams] | None = None, quantize: bool = True, fixed_base: bool = False,
+                 edit: Callable[[mujoco.MjSpec], None] | None = None):
         super().__init__(spec)
         self.fixed_base = fixed_base
+        self._edit = edit
         self._model_file = Path(model) if model is not None else model_path(spec)
         self._servo_override = dict(servo or {})
         unknown = set(self._servo_override) - set(spec.names)
@@ -148,7 +155,7 @@ class MujocoRobot(RobotBase):
 
     # ------------------------------------------------------------------ connect / model checks
     def _connect(self) -> None:
-        m = load_model(self._model_file, fixed_base=self.fixed_base)
+        m = load_model(self._model_file, fixed_base=self.fixed_base, edit=self._edit)
         spec = self.spec
         self.model, self.data = m, mujoco.MjData(m)
         n = spec.n

@@ -26,7 +26,8 @@ def register(sub) -> None:
         sp.add_argument("--roll", type=finite, default=0.0, help="initial roll (deg)")
         sp.add_argument("--pitch", type=finite, default=0.0, help="initial pitch (deg)")
         sp.add_argument("--yaw", type=finite, default=0.0, help="initial yaw (deg)")
-        sp.add_argument("--controller", default="stand", help="controller during the run (default stand)")
+        sp.add_argument("--controller", default=None,
+                        help="controller during the run (default: landing for a dropped cat, else stand)")
         sp.add_argument("--duration", type=finite, default=2.0, help="simulated seconds (default 2)")
 
     drop = simsub.add_parser("drop", help="drop the robot and report how it lands")
@@ -50,15 +51,26 @@ def register(sub) -> None:
     view.set_defaults(func=cmd_sim_view)
 
 
+def default_controller(args) -> str:
+    """``--controller`` if given; else the landing skill for a cat that is dropped (the landing nets drive
+    the cat's joints), else ``stand``."""
+    if args.controller:
+        return args.controller
+    from felis.learning.landing.policy import JOINTS
+
+    dropped = getattr(args, "height", None) is not None
+    return "landing" if dropped and tuple(load_spec(args.robot).names) == JOINTS else "stand"
+
+
 def cmd_sim_drop(args) -> int:
-    res = episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
+    res = episode(args, robot=args.robot, controller=default_controller(args), duration=args.duration,
                   drop=(args.height, args.roll, args.pitch, args.yaw), log=args.log, video=args.video,
                   servo_params=args.servo_params)
     return report(args, res)
 
 
 def cmd_sim_render(args) -> int:
-    res = episode(args, robot=args.robot, controller=args.controller, duration=args.duration,
+    res = episode(args, robot=args.robot, controller=default_controller(args), duration=args.duration,
                   drop=drop_args(args), video=args.out, fps=args.fps, size=args.size)
     return report(args, res)
 
@@ -73,7 +85,7 @@ def cmd_sim_view(args) -> int:
     from felis.sim.scenarios import drop
 
     spec = load_spec(args.robot)
-    controller = make_controller(args.controller)
+    controller = make_controller(default_controller(args))
     dropped = drop_args(args)
     with MujocoRobot(spec) as robot:
         if dropped is not None:

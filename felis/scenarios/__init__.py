@@ -15,6 +15,7 @@ from felis.scenarios.drop import (
     check_drop,
     drop_from_values,
     drops_from,
+    euler_drops,
     load_drops,
     make_drop,
     random_drops,
@@ -48,6 +49,7 @@ from felis.scenarios.verdicts import (
 __all__ = [
     "BODIES", "FALL_TILT_DEG", "FALL_WINDOW_S", "MAX_ANGLE_DEG", "MAX_DROP_HEIGHT", "MAX_IMPULSE", "PHASES",
     "TILT_DEG", "WAIST_FRACTION", "WINDOW_S", "Drop", "FallTruth", "FallVerdict", "LandingTruth", "LandingVerdict",
-    "Push", "check_drop", "check_push", "drop_from_values", "drops_from", "fall_reason", "fall_verdict", "landed",
-    "landing_verdict", "load_drops", "load_pushes", "make_drop", "pushes_from", "random_drops", "random_pushes",
+    "Push", "check_drop", "check_push", "drop_from_values", "drops_from", "euler_drops", "fall_reason", "fall_verdict",
+    "landed", "landing_verdict", "load_drops", "load_pushes", "make_drop", "pushes_from", "random_drops",
+    "random_pushes",
 ]

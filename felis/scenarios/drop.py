@@ -112,9 +112,7 @@ def load_drops(path: str | Path) -> list[Drop]:
     return read_json_list(path, "drops file", f"drops {{{', '.join(FIELDS)}}}", "drop", check_drop, ParameterError)
 
 
-def random_drops(n: int, seed: int = 0, heights: float | tuple[float, ...] = (1.0,)) -> list[Drop]:
-    """``n`` drops with roll, pitch and yaw uniform over the full circle [-180, 180) degrees and the
-    height taken from ``heights`` in turn (or a fixed value). Deterministic per seed."""
+def _heights(n: int, heights: float | tuple[float, ...]) -> tuple[float, ...]:
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ParameterError(f"random:N needs a whole number N ≥ 1, got {n!r}")
     hs = (heights,) if isinstance(heights, int | float) else tuple(heights)
@@ -124,19 +122,42 @@ def random_drops(n: int, seed: int = 0, heights: float | tuple[float, ...] = (1.
         if isinstance(h, bool) or not isinstance(h, int | float) or not math.isfinite(h) \
                 or not 0.0 < h <= MAX_DROP_HEIGHT:
             raise ParameterError(f"drop height must be above 0 and at most {MAX_DROP_HEIGHT:g} m, got {h!r}")
+    return hs
+
+
+def random_drops(n: int, seed: int = 0, heights: float | tuple[float, ...] = (1.0,)) -> list[Drop]:
+    """``n`` drops in orientations drawn uniformly over all rotations (Haar measure: what "a random
+    orientation" means; `scipy.spatial.transform.Rotation.random`), given as roll, pitch, yaw in degrees
+    (R = Rz(yaw)·Ry(pitch)·Rx(roll)), the height taken from ``heights`` in turn (or a fixed value).
+    Deterministic per seed. The start tilt θ (up-axis from vertical) then has P(tilt ≤ θ) = (1 − cos θ)/2:
+    half the drops start tilted more than 90°. `euler_drops` is the older draw (each angle uniform)."""
+    from scipy.spatial.transform import Rotation
+
+    hs = _heights(n, heights)
+    ypr = Rotation.random(n, random_state=np.random.default_rng(seed)).as_euler("ZYX", degrees=True)
+    return [Drop(float(r), float(p), float(y), float(hs[i % len(hs)])) for i, (y, p, r) in enumerate(ypr)]
+
+
+def euler_drops(n: int, seed: int = 0, heights: float | tuple[float, ...] = (1.0,)) -> list[Drop]:
+    """``n`` drops with roll, pitch and yaw each uniform in [-180, 180) degrees (``euler:N``; felis's
+    ``random:N`` before issue 21: it puts more drops near upright than a uniform rotation does).
+    Deterministic per seed."""
+    hs = _heights(n, heights)
     rng = np.random.default_rng(seed)
     angles = rng.uniform(-180.0, 180.0, size=(n, 3))
     return [Drop(float(r), float(p), float(y), float(hs[i % len(hs)])) for i, (r, p, y) in enumerate(angles)]
 
 
 def drops_from(arg: str, seed: int = 0, height: float | None = None) -> list[Drop]:
-    """``FILE`` or ``random:N`` (the CLI's --drops); ``height`` (m, default 1.0) is for random:N only."""
-    if arg.startswith("random:"):
-        try:
-            n = int(arg.split(":", 1)[1])
-        except ValueError:
-            raise ParameterError(f"--drops {arg!r}: expected random:N with N a whole number") from None
-        return random_drops(n, seed, 1.0 if height is None else height)
+    """``FILE``, ``random:N`` (uniform rotations) or ``euler:N`` (uniform Euler angles) — the CLI's --drops;
+    ``height`` (m, default 1.0) is for the random draws only."""
+    for prefix, draw in (("random:", random_drops), ("euler:", euler_drops)):
+        if arg.startswith(prefix):
+            try:
+                n = int(arg.split(":", 1)[1])
+            except ValueError:
+                raise ParameterError(f"--drops {arg!r}: expected {prefix}N with N a whole number") from None
+            return draw(n, seed, 1.0 if height is None else height)
     if height is not None:
-        raise ParameterError("--height is for --drops random:N; a drops file gives each drop's height_m")
+        raise ParameterError("--height is for --drops random:N or euler:N; a drops file gives each drop's height_m")
     return load_drops(arg)

@@ -17,9 +17,11 @@ Policies, by name: ``passive`` holds the pose the cat has at release (`make_cont
 the nearest training orientation, ``shipped`` the shipped trained policy, and a file path a trained policy
 (`check_policy`).
 
-`run_drops` runs a list of drops in a process pool (one compiled model per worker, reset between
-drops); results are in drop order and identical whatever the worker count, since each episode is
-deterministic and independent. `summarise` gives the success rate (landed / drops) and one entry per drop.
+`run_drops` runs a list of drops batched (`BatchLandingSim` on `felis.sim.batch.DropBatch`: every cat of a batch
+stepped together by `mujoco.rollout` on every core, the policy evaluated once per tick for the batch); results
+are in drop order and identical whatever the thread count. `run_drops_sequential` is the one-episode-at-a-time
+path through `felis.loop.run_loop` in a process pool, which the batch is tested against.
+`summarise` gives the success rate (landed / drops) and one entry per drop.
 """
 
 from __future__ import annotations
@@ -200,10 +202,33 @@ def _one(args) -> LandingOutcome:
 
 
 def run_drops(drops: Sequence[Drop], policy: str = "passive", *, workers: int | None = None, robot: str = "cat",
-              progress: Callable[[int], None] | None = None) -> list[LandingOutcome]:
-    """Run every drop with ``policy`` in ``workers`` processes (default: every core); results in drop order,
-    identical whatever the number of workers."""
+              progress: Callable[[int], None] | None = None, chunk: int = 256) -> list[LandingOutcome]:
+    """Run every drop with ``policy``, batched (`BatchLandingSim`: ``chunk`` cats at a time on ``workers``
+    threads, default every core); results in drop order, identical whatever the number of workers (each cat
+    is stepped alone). ``progress(n)`` after each batch of n drops."""
     check_policy(policy)  # a bad policy fails here, once, as one line
+    if workers is not None and workers < 1:
+        raise ParameterError(f"workers must be ≥ 1, got {workers}")
+    if not drops:
+        return []
+    sim = BatchLandingSim(robot, nthread=workers)
+    try:
+        out: list[LandingOutcome] = []
+        for i in range(0, len(drops), chunk):
+            part = list(drops[i:i + chunk])
+            out += sim.run(part, batch_controller(sim.spec, policy, part), policy=policy)
+            if progress is not None:
+                progress(len(part))
+        return out
+    finally:
+        sim.close()
+
+
+def run_drops_sequential(drops: Sequence[Drop], policy: str = "passive", *, workers: int | None = None,
+                         robot: str = "cat", progress: Callable[[int], None] | None = None) -> list[LandingOutcome]:
+    """The sequential path: each drop through `felis.loop.run_loop` (`LandingSim`), in a process pool of
+    ``workers``; what `run_drops` is checked against (``tests/sim/test_batch.py``)."""
+    check_policy(policy)
     if workers is not None and workers < 1:
         raise ParameterError(f"workers must be ≥ 1, got {workers}")
     if not drops:
@@ -217,6 +242,50 @@ def run_drops(drops: Sequence[Drop], policy: str = "passive", *, workers: int | 
         finally:
             sim.close()
     return run_jobs(_one, jobs, workers, _init, (robot,), max(1, min(4, len(jobs) // (4 * workers))), progress)
+
+
+# ----------------------------------------------------------------------------------- batched runs
+def batch_controller(spec, policy: str, drops: Sequence[Drop]):
+    """The batched controller (`felis.sim.batch.DropBatch`) for a checked policy name over ``drops``."""
+    from felis.controllers.landing import LandingBatch, PerCat
+
+    if policy in POLICIES or policy == "rules":
+        return PerCat(spec, lambda b: make_policy(policy, drops[b]))
+    from felis.learning.landing.policy import load_policy
+
+    behaviour, _ = load_policy(shipped_policy() if policy == "shipped" else policy)
+    return LandingBatch(spec, [behaviour])
+
+
+def outcome_of(d: Drop, policy: str, r, standing_waist_m: float) -> LandingOutcome:
+    """A `LandingOutcome` from one cat of a batch (`felis.sim.batch.BatchResult`), by the one verdict."""
+    v = landing_verdict(r.truth)
+    if r.diverged:
+        return LandingOutcome(d, policy, False, False, v.touchdown_t, v.first_body, v.touch_body, None, None, None,
+                              r.peak_impact, float("nan"), "physics diverged", ("physics diverged",), standing_waist_m)
+    return LandingOutcome(
+        d, policy, v.landed, v.foot_only, v.touchdown_t, v.first_body, v.touch_body,
+        None if v.touch_t is None else v.touch_t - v.touchdown_t, v.tilt_deg, v.waist_m, r.peak_impact,
+        tilt_from_up(r.final_up_z), v.why, tuple(kind for kind, _ in v.reasons), standing_waist_m)
+
+
+class BatchLandingSim:
+    """Drops in batches (`felis.sim.batch.DropBatch`, every core by default): what `run_drops`, training and
+    the optimum use. The standing waist height is measured once, as `LandingSim` does."""
+
+    def __init__(self, robot: str = "cat", *, nthread: int | None = None, servo=None, spec=None):
+        from felis.sim.batch import DropBatch
+
+        self.spec = spec or load_spec(robot)
+        self.batch = DropBatch(self.spec, servo=servo, nthread=nthread)
+        self.standing_waist_m = standing_waist_height(self.batch.robot)
+
+    def run(self, drops: Sequence[Drop], controller, *, policy: str = "", **kw) -> list[LandingOutcome]:
+        results = self.batch.run(drops, controller, self.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S, **kw)
+        return [outcome_of(d, policy, r, self.standing_waist_m) for d, r in zip(drops, results, strict=True)]
+
+    def close(self) -> None:
+        self.batch.close()
 
 
 def summarise(outcomes: Sequence[LandingOutcome]) -> dict:

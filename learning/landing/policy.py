@@ -44,7 +44,7 @@ import numpy as np
 
 from felis.errors import ParameterError, PolicyError
 from felis.files import read_meta, read_npz
-from felis.rotations import roll_pitch
+from felis.rotations import roll_pitch, roll_pitch_many
 from felis.servos import SERVOS
 
 JOINTS = ("spine_pitch", "spine_yaw", "tail_pitch", "tail_yaw",
@@ -110,6 +110,19 @@ def normalise_inputs(q: Sequence[float] | np.ndarray, quat: Sequence[float] | np
     it[5] = pitch / (math.pi / 2)
     it[6] = height / DROP_HEIGHT_M
     it[7:15] = q[4:12] / math.pi
+    return it
+
+
+def normalise_inputs_many(q: np.ndarray, quat: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """`normalise_inputs` for a batch of cats: q (B, 12), quat (B, 4), height (B,) → IT (B, 15)."""
+    q = np.asarray(q, dtype=float)
+    roll, pitch = roll_pitch_many(quat)
+    it = np.empty((q.shape[0], N_IT))
+    it[:, 0:4] = q[:, 0:4] / math.pi
+    it[:, 4] = roll / math.pi
+    it[:, 5] = pitch / (math.pi / 2)
+    it[:, 6] = np.asarray(height, dtype=float) / DROP_HEIGHT_M
+    it[:, 7:15] = q[:, 4:12] / math.pi
     return it
 
 
@@ -188,15 +201,24 @@ class GeneUnit:
             raise PolicyError(f"{self.kind} unit has output scale {self.scale}; needs a finite value > 0")
         return self
 
-    def raw(self, x: np.ndarray) -> np.ndarray:
-        """tanh(W2 · [tanh(W1 · [x_I; 1]); 1]) ∈ (-1, 1)^|O| for the available inputs ``x``."""
-        if self._fast is None:  # W1 spread over all available inputs (zeros where not in I), biases apart
+    def _weights(self) -> tuple:
+        """W1 spread over all available inputs (zeros where not in I), biases apart; built once."""
+        if self._fast is None:
             a = np.zeros((self.hidden, _kind(self.kind).n_available))
             a[:, list(self.inputs)] = self.W1[:, :-1]
             object.__setattr__(self, "_fast", (a, self.W1[:, -1].copy(), np.ascontiguousarray(self.W2[:, :-1]),
                                                self.W2[:, -1].copy()))
-        a, b1, c, b2 = self._fast
+        return self._fast
+
+    def raw(self, x: np.ndarray) -> np.ndarray:
+        """tanh(W2 · [tanh(W1 · [x_I; 1]); 1]) ∈ (-1, 1)^|O| for the available inputs ``x``."""
+        a, b1, c, b2 = self._weights()
         return np.tanh(c @ np.tanh(a @ x + b1) + b2)
+
+    def raw_many(self, x: np.ndarray) -> np.ndarray:
+        """`raw` for a batch: ``x`` (B, available inputs) → (B, |O|)."""
+        a, b1, c, b2 = self._weights()
+        return np.tanh(np.tanh(x @ a.T + b1) @ c.T + b2)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """scale · `raw`: joint velocities (rad/s) or, for compose, dispatch signals in (-1, 1)."""
@@ -235,6 +257,16 @@ class SimpleBehaviour:
         """(12,) joint velocities (rad/s, `JOINTS` order) for IT (15,): spine from IT, tail and legs from
         IT + the spine net's normalised outputs."""
         return _drive(self.spine, self.tail, self.legs, _check_it(it))
+
+    def velocities_many(self, it: np.ndarray) -> np.ndarray:
+        """`velocities` for a batch: IT (B, 15) → (B, 12)."""
+        return _drive_many(self.spine, self.tail, self.legs, it)
+
+
+def _drive_many(spine: GeneUnit, tail: GeneUnit, legs: GeneUnit, it: np.ndarray) -> np.ndarray:
+    s = spine.raw_many(it)
+    x = np.concatenate((it, s), axis=1)
+    return np.concatenate((spine.scale * s, tail.scale * tail.raw_many(x), legs.scale * legs.raw_many(x)), axis=1)
 
 
 def _drive(spine: GeneUnit, tail: GeneUnit, legs: GeneUnit, it: np.ndarray) -> np.ndarray:
@@ -279,6 +311,17 @@ class ComplexBehaviour:
         i, j, k = self.dispatch(it)
         b = self.behaviours
         return _drive(b[i].spine, b[j].tail, b[k].legs, it)
+
+    def velocities_many(self, it: np.ndarray) -> np.ndarray:
+        """`velocities` for a batch: IT (B, 15) → (B, 12); rows are grouped by the behaviours they dispatch to."""
+        idx = dispatch_index(self.compose.raw_many(it), len(self.behaviours))  # (B, 3)
+        out = np.empty((it.shape[0], len(JOINTS)))
+        b = self.behaviours
+        keys, inverse = np.unique(idx, axis=0, return_inverse=True)
+        for g, (i, j, k) in enumerate(keys):
+            rows = np.flatnonzero(inverse.ravel() == g)
+            out[rows] = _drive_many(b[i].spine, b[j].tail, b[k].legs, it[rows])
+        return out
 
 
 # -------------------------------------------------------------------------------------- policy files

@@ -7,6 +7,7 @@ import argparse
 import json
 import math
 
+import numpy as np
 import pytest
 
 from felis.cli.landing import cmd_eval_landing, register_eval, register_train
@@ -128,11 +129,28 @@ def test_random_drops_deterministic_and_in_range():
         assert d.height_m == 1.0
     # the full circle is covered, upside-down included
     assert min(d.roll_deg for d in a) < -150 and max(d.roll_deg for d in a) > 150
-    assert min(d.pitch_deg for d in a) < -150 and max(d.pitch_deg for d in a) > 150
+    assert min(d.pitch_deg for d in a) < -80 and max(d.pitch_deg for d in a) > 80
     assert [d.height_m for d in random_drops(5, 0, heights=(1.0, 3.0))] == [1.0, 3.0, 1.0, 3.0, 1.0]
     assert {d.height_m for d in random_drops(5, 0, heights=2.5)} == {2.5}
     assert drops_from("random:7", 1, 3.0) == random_drops(7, 1, 3.0)
     assert drops_from("random:7", 1) == random_drops(7, 1)
+
+
+def test_random_drops_are_uniform_over_rotations():
+    """Haar-uniform rotations: the start tilt θ has CDF (1 − cos θ)/2 (Kolmogorov–Smirnov), and the yaw about
+    the vertical is uniform; the Euler draw is kept as euler:N and is not uniform (too many near upright)."""
+    from scipy.stats import kstest
+
+    from felis.rotations import euler_quat, tilt_deg
+    from felis.scenarios.drop import euler_drops
+
+    def tilts(drops):
+        return np.array([tilt_deg(euler_quat(d.roll_deg, d.pitch_deg, d.yaw_deg)) for d in drops])
+
+    cdf = lambda t: (1 - np.cos(np.radians(t))) / 2  # noqa: E731
+    assert kstest(tilts(random_drops(2000, seed=5)), cdf).pvalue > 0.01
+    assert kstest(tilts(euler_drops(2000, seed=5)), cdf).pvalue < 1e-6
+    assert drops_from("euler:4", 2, 3.0) == euler_drops(4, 2, 3.0)
 
 
 @pytest.mark.parametrize("arg, height", [("random:0", None), ("random:x", None), ("random:3", -1.0),
