@@ -24,7 +24,15 @@ cut into 8 batches of 7, four per worker, as a full 24 × 7 generation is (8 bat
 the default chunking makes 7 batches of 4, so one worker runs 16 jobs to the other's 12 and the
 speed-up cannot pass 1.75× (``--population 4``; ``--chunksize 1`` lifts it to about 1.9×).
 
-    python bench/landing_speed.py [--repeats N] [--population P] [--chunksize C] [--json]
+**Batched rollouts** (issue 21). The same generation's jobs (``--population`` individuals × 7 orientations)
+as one batch of `felis.sim.batch.DropBatch` (`mujoco.rollout` on every core, 10 physics steps per tick, the
+policies of the whole batch evaluated in numpy once per tick, the verdict's truth from sensors): physics
+steps per second, policy and verdict included. Two anchors in the same run: *open loop*, `mujoco.rollout`
+of the very controls the batch sent (recorded on a first run), on the same threads, in one call per batch
+(the physics alone: goal ratio ≥ 0.8); and *today*, the sequential rollouts (`run_rollout`, one process,
+as part 1 times them; goal ≥ 2×). Runs interleave (open loop, batch, sequential, …); medians.
+
+    python bench/landing_speed.py [--repeats N] [--population P] [--chunksize C] [--json] [--batched-only]
 """
 
 from __future__ import annotations
@@ -207,6 +215,74 @@ def pool_speedup(task: lk.Task, jobs: list[tuple], repeats: int, chunksize: int 
     }
 
 
+BATCH_GOAL_OPEN_LOOP = 0.8
+BATCH_GOAL_TODAY = 2.0
+
+
+def batched_speed(task: lk.Task, jobs: list[tuple], repeats: int) -> dict:
+    """Part 3 (module doc): the jobs as one batch against open-loop `mujoco.rollout` and the sequential path."""
+    from felis.controllers.landing import LandingBatch
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.scenarios.drop import Drop
+
+    drops = [Drop(*task.orientations[k], task.heights_m[k]) for _, k in jobs]
+    behaviours = [b for b, _ in jobs]
+    ticks = [task.steps] * len(jobs)
+    sim = BatchLandingSim()
+    batch = sim.batch
+    B, T, P = len(jobs), task.steps, 10
+    ctrl = np.zeros((B, T * P, batch.model.nu))
+
+    def record(k, st, sd, active):
+        ctrl[active, k * P:(k + 1) * P] = batch.last_ctrl
+
+    def run_batch(rec=None) -> float:
+        t0 = time.perf_counter()
+        res = batch.run(drops, LandingBatch(sim.spec, behaviours, np.arange(B)), sim.standing_waist_m, ticks=ticks,
+                        record=rec)
+        assert len(res) == B
+        return time.perf_counter() - t0
+
+    run_batch(record)  # the controls, for the open-loop anchor (and a warm-up)
+    start, _ = batch.initial(drops)
+    out_state = np.empty((B, T * P, batch.nstate))
+    out_sens = np.empty((B, T * P, batch.model.nsensordata))
+
+    def open_loop() -> float:
+        t0 = time.perf_counter()
+        batch._pool.rollout(batch.model, batch._datas, start, ctrl, nstep=T * P, state=out_state,
+                            sensordata=out_sens)
+        return time.perf_counter() - t0
+
+    lk.init_worker(task)
+    try:
+        open_s, batch_s, seq_s = [], [], []
+        for _ in range(repeats):
+            open_s.append(open_loop())
+            batch_s.append(run_batch())
+            seq_s.append(rollout_episodes(jobs))
+    finally:
+        lk.release_worker()
+        sim.close()
+    steps = B * T * P
+    med = statistics.median
+    r_open = sorted(o / b for o, b in zip(open_s, batch_s, strict=True))
+    r_today = sorted(q / b for q, b in zip(seq_s, batch_s, strict=True))
+    return {
+        "batch": f"{B} cats ({len(jobs) // task.k} individuals × {task.k} orientations), {T} ticks, "
+                 f"{batch.nthread} threads",
+        "open_loop_steps_per_s": round(steps / med(open_s)),
+        "batched_steps_per_s": round(steps / med(batch_s)),
+        "sequential_steps_per_s": round(steps / med(seq_s)),
+        "ratio_open_loop": round(med(r_open), 3),
+        "ratio_open_loop_range": [round(r_open[0], 3), round(r_open[-1], 3)],
+        "ratio_today": round(med(r_today), 3),
+        "ratio_today_range": [round(r_today[0], 3), round(r_today[-1], 3)],
+        "goals": f"open loop >= {BATCH_GOAL_OPEN_LOOP}, today >= {BATCH_GOAL_TODAY}",
+        "met": med(r_open) >= BATCH_GOAL_OPEN_LOOP and med(r_today) >= BATCH_GOAL_TODAY,
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7, help="interleaved timed batches (each part)")
@@ -214,12 +290,18 @@ def main() -> None:
     ap.add_argument("--chunksize", type=int, default=None, help="jobs per pool batch (default: the evaluator's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--batched-only", action="store_true", help="part 3 only (batched rollouts)")
     args = ap.parse_args()
 
     task, jobs = setup(args.population, args.seed)
+    if args.batched_only:
+        b = batched_speed(task, jobs, args.repeats)
+        print(json.dumps({"cpus": os.cpu_count(), "batched": b}, indent=2))
+        return
     result = {"cpus": os.cpu_count(), "load_avg_1min": round(os.getloadavg()[0], 2),
               "repeats": args.repeats, "one_process": episode_speed(task, jobs, args.repeats),
-              "pool": pool_speedup(task, jobs, args.repeats, args.chunksize)}
+              "pool": pool_speedup(task, jobs, args.repeats, args.chunksize),
+              "batched": batched_speed(task, jobs, args.repeats)}
     if args.json:
         print(json.dumps(result, indent=2))
         return
@@ -242,6 +324,15 @@ def main() -> None:
           f"(pairs {p['speedup_range'][0]:.2f}…{p['speedup_range'][1]:.2f}; goal ≥ {GOAL}×: "
           f"{'met' if p['met'] else 'NOT met'})")
     print(f"    identical results    : {'yes' if p['identical_results'] else 'NO'}")
+    b = result["batched"]
+    print(f"  batched ({b['batch']}), physics steps/s:")
+    print(f"    open-loop mujoco.rollout: {b['open_loop_steps_per_s']:9d}   (anchor: the same controls)")
+    print(f"    felis batch             : {b['batched_steps_per_s']:9d}   ratio {b['ratio_open_loop']:.3f} "
+          f"(runs {b['ratio_open_loop_range'][0]:.3f}…{b['ratio_open_loop_range'][1]:.3f}; goal ≥ "
+          f"{BATCH_GOAL_OPEN_LOOP})")
+    print(f"    sequential (today)      : {b['sequential_steps_per_s']:9d}   batch ÷ today {b['ratio_today']:.2f}× "
+          f"(runs {b['ratio_today_range'][0]:.2f}…{b['ratio_today_range'][1]:.2f}; goal ≥ {BATCH_GOAL_TODAY}×): "
+          f"{'met' if b['met'] else 'NOT met'}")
 
 
 if __name__ == "__main__":

@@ -102,12 +102,20 @@ class DropBatch:
         servo: per-joint servo parameters, as `MujocoRobot` takes them (a design study's servos).
         nthread: rollout threads (default: every core).
         safety: the safety layer's configuration (`felis.loop.run_loop`'s default when None).
+        sensors: an `MjSpec` edit adding more sensors for ``record`` (e.g. the landing features' body points).
     """
 
     def __init__(self, spec: RobotSpec, *, servo: dict[str, ServoParams] | None = None, nthread: int | None = None,
-                 safety: SafetyConfig | None = None):
+                 safety: SafetyConfig | None = None, sensors: Callable[[mujoco.MjSpec], None] | None = None):
         self.spec = spec
-        self.robot = MujocoRobot(spec, servo=servo, edit=verdict_sensors(spec))
+        verdict = verdict_sensors(spec)
+
+        def edit(ms: mujoco.MjSpec) -> None:
+            verdict(ms)
+            if sensors is not None:
+                sensors(ms)
+
+        self.robot = MujocoRobot(spec, servo=servo, edit=edit)
         self.robot.connect()
         self.robot.arm()  # gains on, as in every episode
         m = self.model = self.robot.model
@@ -125,6 +133,7 @@ class DropBatch:
         adr = lambda name: int(m.sensor_adr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SENSOR, PREFIX + name)])  # noqa: E731
         self._up = adr("up") + 2
         self._waist = adr("waist") + 2
+        self.adr = {"up_z": self._up, "waist_z": self._waist}  # sensor data addresses, for ``record``
         self._force = adr("force") + 2
         floor = [s for s in range(m.nsensor) if m.sensor(s).name.startswith(PREFIX + "floor_")]
         self._floor_adr = np.array([m.sensor_adr[s] for s in floor])
@@ -134,6 +143,7 @@ class DropBatch:
         self.bodies = tuple(m.body(b).name for b in range(m.nbody))
         self.weight = r.mass() * float(np.linalg.norm(m.opt.gravity))
         self.safety = SafetyLayer(spec, 1.0 / 100.0, safety)
+        self.last_ctrl: np.ndarray | None = None  # (active, 10, nu): the controls of the last tick (benchmarks)
 
     def close(self) -> None:
         self._pool.close()
@@ -214,6 +224,7 @@ class DropBatch:
             c = ctrl[:na]
             c[:, :, self._act] = sent[a][:, None, :]
             st, sd = out_state[:na], out_sens[:na]
+            self.last_ctrl = c
             self._pool.rollout(m, self._datas, state[a], c, nstep=PHYSICS_PER_TICK, state=st, sensordata=sd)
             # divergence: MuJoCo resets a cat whose state went non-finite (its time goes back)
             tnow = st[:, :, 0]

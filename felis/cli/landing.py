@@ -65,16 +65,21 @@ def register_eval(eval_sub) -> None:
     """Add ``felis eval landing``."""
     e = eval_sub.add_parser("landing", help="drop the cat from many orientations and heights: the landing "
                             "success rate of a policy")
-    e.add_argument("--drops", required=True, metavar="FILE|random:N",
-                   help="a JSON list of drops {roll_deg, pitch_deg, yaw_deg, height_m}, or random:N (roll, pitch "
-                   "and yaw uniform over the full circle)")
-    e.add_argument("--policy", metavar="shipped|passive|stand|rules|FILE",
+    e.add_argument("--drops", required=True, metavar="FILE|random:N|euler:N",
+                   help="a JSON list of drops {roll_deg, pitch_deg, yaw_deg, height_m}, random:N (orientations "
+                   "uniform over all rotations) or euler:N (roll, pitch and yaw each uniform over the circle)")
+    e.add_argument("--policy", metavar="shipped|passive|stand|rules|optimum|FILE",
                    help="what the cat does while it falls and lands: shipped (the trained policy, the default), "
                    "passive (hold the pose at release), stand (go to the stand pose), rules (the hand-written "
-                   "spine rule of the nearest training orientation) or a policy file from `felis train landing`")
+                   "spine rule of the nearest training orientation), optimum (the best open-loop whole-body "
+                   "motion CMA-ES finds for each drop: the ceiling; slow) or a policy file from `felis train "
+                   "landing`")
+    e.add_argument("--generations", type=int, default=30, help="optimum: CMA-ES generations per start (default 30)")
+    e.add_argument("--population", type=int, default=12, help="optimum: CMA-ES population (default 12)")
+    e.add_argument("--restarts", type=int, default=0, help="optimum: further starts from the next seeds (default 0)")
     e.add_argument("--seed", type=int, default=0, help="seed of random:N (default 0)")
     e.add_argument("--height", type=float, metavar="M", help="drop height for random:N (m, default 1.0)")
-    e.add_argument("--workers", type=int, help="processes (default: every core)")
+    e.add_argument("--workers", type=int, help="rollout threads (default: every core)")
     e.add_argument("--out", type=Path, metavar="FILE.json", help="also write the JSON result to this file")
     e.add_argument("--json", action="store_true", help="print the result as JSON")
     e.set_defaults(func=cmd_eval_landing)
@@ -127,11 +132,13 @@ def cmd_train_landing(args) -> int:
 
 
 def cmd_eval_landing(args) -> int:
-    from felis.learning.landing.evaluate import check_policy, default_policy, run_drops, summarise
+    from felis.learning.landing.evaluate import by_tilt, check_policy, default_policy, run_drops, summarise
     from felis.scenarios.drop import drops_from
 
     drops = drops_from(args.drops, args.seed, args.height)
     args.policy = args.policy or default_policy()
+    if args.policy == "optimum":
+        return _eval_optimum(args, drops)
     check_policy(args.policy)
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
@@ -142,8 +149,40 @@ def cmd_eval_landing(args) -> int:
         outcomes = run_drops(drops, args.policy, workers=args.workers, progress=step)
     summary = summarise(outcomes)
     res = {"success_rate": summary["success_rate"], "policy": args.policy, **summary,
-           "drops_source": args.drops, "seed": args.seed if args.drops.startswith("random:") else None}
+           "by_tilt": by_tilt(drops, [o.landed for o in outcomes]),
+           "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None}
     res["drops"] = res.pop("drops")  # the per-drop list last, after the headline and the counts
+    return output.emit(args, res, _print_summary)
+
+
+def _eval_optimum(args, drops) -> int:
+    from felis.learning.landing.evaluate import by_tilt
+    from felis.learning.landing.optimum import optimise
+
+    if args.workers is not None and args.workers < 1:
+        raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
+    output.check_json_out(args.out)
+    quiet = args.json or not sys.stderr.isatty()
+    total = args.generations * (args.restarts + 1)
+    bar, step = output.progress(total, "generations", quiet)
+    with bar:
+        best = optimise(drops, generations=args.generations, population=args.population, restarts=args.restarts,
+                        seed=args.seed, workers=args.workers, progress=lambda g, n: step(1))
+    landed = [o.landed for o in best]
+    reasons: dict[str, int] = {}
+    for o in best:
+        if o.why:
+            for k in o.why.split("; "):
+                k = k.split(" touched")[0] + " touched the ground" if " touched" in k else k.split(" after")[0]
+                reasons[k] = reasons.get(k, 0) + 1
+    res = {"success_rate": round(sum(landed) / len(best), 4) if best else None, "policy": "optimum",
+           "landed": sum(landed), "total": len(best),
+           "reasons": dict(sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))),
+           "standing_waist_m": None, "by_tilt": by_tilt(drops, landed),
+           "search": {"generations": args.generations, "population": args.population, "restarts": args.restarts,
+                      "rollouts": int(sum(o.rollouts for o in best))},
+           "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None,
+           "drops": [o.as_dict() for o in best]}
     return output.emit(args, res, _print_summary)
 
 
@@ -152,8 +191,11 @@ def _print_summary(r: dict) -> None:
     hs = f"{heights[0]:g} m" if len(heights) == 1 else f"{heights[0]:g}…{heights[-1]:g} m"
     rate = "n/a" if r["success_rate"] is None else f"{r['success_rate']:.3f}"
     src = r["drops_source"] + (f", seed {r['seed']}" if r["seed"] is not None else "")
+    waist = f"; standing waist {r['standing_waist_m']:.3f} m" if r.get("standing_waist_m") else ""
     print(f"{r['total']} drops from {hs} ({src}), policy {r['policy']}: {r['landed']} landed "
-          f"(success rate {rate}); standing waist {r['standing_waist_m']:.3f} m")
+          f"(success rate {rate}){waist}")
+    if r.get("by_tilt"):
+        print("  by start tilt: " + ", ".join(f"{k}: {v['landed']}/{v['total']}" for k, v in r["by_tilt"].items()))
     if r["reasons"]:
         print("  why not (a drop may have several reasons): "
               + "; ".join(f"{k}: {v}" for k, v in r["reasons"].items()))

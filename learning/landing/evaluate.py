@@ -273,11 +273,11 @@ class BatchLandingSim:
     """Drops in batches (`felis.sim.batch.DropBatch`, every core by default): what `run_drops`, training and
     the optimum use. The standing waist height is measured once, as `LandingSim` does."""
 
-    def __init__(self, robot: str = "cat", *, nthread: int | None = None, servo=None, spec=None):
+    def __init__(self, robot: str = "cat", *, nthread: int | None = None, servo=None, spec=None, sensors=None):
         from felis.sim.batch import DropBatch
 
         self.spec = spec or load_spec(robot)
-        self.batch = DropBatch(self.spec, servo=servo, nthread=nthread)
+        self.batch = DropBatch(self.spec, servo=servo, nthread=nthread, sensors=sensors)
         self.standing_waist_m = standing_waist_height(self.batch.robot)
 
     def run(self, drops: Sequence[Drop], controller, *, policy: str = "", **kw) -> list[LandingOutcome]:
@@ -286,6 +286,23 @@ class BatchLandingSim:
 
     def close(self) -> None:
         self.batch.close()
+
+
+TILT_BINS = (0, 30, 60, 90, 120, 150, 180)
+
+
+def by_tilt(drops: Sequence[Drop], landed: Sequence[bool]) -> dict[str, dict[str, int]]:
+    """Landed / total per 30° bin of start tilt (the angle of the body's up-axis from vertical at release)."""
+    from felis.rotations import euler_quat, tilt_deg
+
+    out = {f"{a}-{b}": {"landed": 0, "total": 0} for a, b in zip(TILT_BINS, TILT_BINS[1:], strict=False)}
+    keys = list(out)
+    for d, ok in zip(drops, landed, strict=True):
+        t = float(tilt_deg(euler_quat(d.roll_deg, d.pitch_deg, d.yaw_deg)))
+        k = keys[min(len(keys) - 1, int(t // 30))]
+        out[k]["total"] += 1
+        out[k]["landed"] += int(bool(ok))
+    return out
 
 
 def summarise(outcomes: Sequence[LandingOutcome]) -> dict:

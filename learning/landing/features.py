@@ -151,6 +151,60 @@ def body_frame(m: mujoco.MjModel, d: mujoco.MjData, index: SegmentIndex | None =
     return (points[ix.end] - points[ix.start]) @ heading_rotation(d.xmat[ix.root]).T
 
 
+MOTION_PREFIX = "felis_motion_"
+
+
+def motion_sensors(ms: mujoco.MjSpec) -> None:
+    """An `MjSpec` edit (`felis.sim.batch.DropBatch`'s ``sensors``) adding what `body_frame` reads, as sensors:
+    each body's frame origin (``xpos``) and centre of mass (``xipos``), the root's x and y axes, and the lower
+    body's z axis (training's landing score uses it)."""
+    m = ms.compile()
+    O, S = mujoco.mjtObj, mujoco.mjtSensor
+    for b in range(1, m.nbody):
+        name = m.body(b).name
+        ms.add_sensor(name=f"{MOTION_PREFIX}x_{name}", type=S.mjSENS_FRAMEPOS, objtype=O.mjOBJ_XBODY, objname=name)
+        ms.add_sensor(name=f"{MOTION_PREFIX}i_{name}", type=S.mjSENS_FRAMEPOS, objtype=O.mjOBJ_BODY, objname=name)
+    ms.add_sensor(name=MOTION_PREFIX + "rootx", type=S.mjSENS_FRAMEXAXIS, objtype=O.mjOBJ_XBODY, objname=ROOT_BODY)
+    ms.add_sensor(name=MOTION_PREFIX + "rooty", type=S.mjSENS_FRAMEYAXIS, objtype=O.mjOBJ_XBODY, objname=ROOT_BODY)
+    ms.add_sensor(name=MOTION_PREFIX + "lowerz", type=S.mjSENS_FRAMEZAXIS, objtype=O.mjOBJ_XBODY, objname="lower_body")
+
+
+class SensorMotion:
+    """`body_frame` from the sensors of `motion_sensors` (a batch's sensor data): ``vectors(sd)`` for rows
+    of sensor data (N, nsensordata) gives (N, J, 3); ``lower_up_z(sd)`` the lower body's up-axis z (N,)."""
+
+    def __init__(self, m: mujoco.MjModel):
+        self.index = segment_index(m)
+
+        def adr(name: str) -> int:
+            sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SENSOR, MOTION_PREFIX + name)
+            if sid < 0:
+                raise ParameterError(f"the model lacks the motion sensor {MOTION_PREFIX + name!r} (motion_sensors)")
+            return int(m.sensor_adr[sid])
+
+        rows = np.zeros((2 * m.nbody, 3), dtype=int)  # sensor addresses of xpos, then xipos; world: -1
+        rows[0] = rows[m.nbody] = -1
+        for b in range(1, m.nbody):
+            rows[b] = adr("x_" + m.body(b).name) + np.arange(3)
+            rows[m.nbody + b] = adr("i_" + m.body(b).name) + np.arange(3)
+        self._start, self._end = rows[self.index.start], rows[self.index.end]
+        self._x, self._y, self._lz = adr("rootx"), adr("rooty"), adr("lowerz") + 2
+
+    def vectors(self, sd: np.ndarray) -> np.ndarray:
+        pts = lambda r: np.where(r >= 0, sd[:, np.maximum(r, 0)], 0.0)  # noqa: E731  (N, J, 3)
+        v = pts(self._end) - pts(self._start)
+        out = np.empty_like(v)
+        for i in range(sd.shape[0]):
+            x, y = sd[i, self._x:self._x + 3], sd[i, self._y:self._y + 3]
+            z = np.cross(x, y)
+            R = np.array([[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]])
+            out[i] = v[i] @ heading_rotation(R).T
+        return out
+
+    def lower_up_z(self, sd: np.ndarray) -> np.ndarray:
+        return sd[:, self._lz].copy()
+
+
 class MotionRecorder:
     """Collects `body_frame` once per call of `record` (e.g. every 10 ms control tick of a rollout)."""
 

@@ -103,15 +103,19 @@ def score(task: Task, k: int | tuple, r: Rollout) -> np.ndarray:
 
 def _landing(r: Any) -> float:
     """`landing_score` of a `samples.Rollout` (its outcome and per-tick up-axes)."""
-    o = r.outcome
-    n = len(r.up_z)
+    return _landing_of(r.outcome, r.up_z, r.lower_up_z)
+
+
+def _landing_of(o: Any, up_z: np.ndarray, lower_up_z: np.ndarray) -> float:
+    """`landing_score` of an outcome (`LandingOutcome`) with the per-tick up-axis z of upper and lower body."""
+    n = len(up_z)
     if o.touchdown_s is None:
         i, clean = n - 1, 0.0
     else:
         i = min(n - 1, max(0, int(o.touchdown_s / DT)))
         clean = 1.0 if o.foot_only else min(1.0, float(o.touch_s or 0.0) / WINDOW_S)
     waist = None if o.waist_m is None else float(o.waist_m) / float(o.standing_waist_m)
-    air = 0.5 * (float(r.up_z[i]) + float(r.lower_up_z[i]))
+    air = 0.5 * (float(up_z[i]) + float(lower_up_z[i]))
     return landing_score(air if math.isfinite(air) else -1.0, clean, o.tilt_deg, waist, bool(o.landed))
 
 
@@ -154,6 +158,89 @@ def evaluate_job(job: tuple[SimpleBehaviour | ComplexBehaviour, int | tuple]) ->
     sim, task = _WORKER
     behaviour, k = job
     return score(task, k, run_rollout(sim, task, behaviour, k))
+
+
+# Batched (issue 21): per worker a `BatchLandingSim` with the motion sensors; a whole list of jobs is one batch.
+_BATCH: tuple[Any, Task, Any] | None = None
+
+
+def init_batch_worker(task: Task) -> None:
+    """Evaluator initializer for `evaluate_batch`: a `BatchLandingSim` with the motion sensors
+    (`features.motion_sensors`); rollout threads: every core in the main process (the inline evaluator),
+    one in a pool's or Ray's worker process (the processes are the parallelism there)."""
+    global _BATCH
+    import multiprocessing
+
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.features import SensorMotion, motion_sensors
+
+    release_batch_worker()
+    nthread = None if multiprocessing.parent_process() is None else 1
+    sim = BatchLandingSim(task.robot, nthread=nthread, sensors=motion_sensors)
+    _BATCH = (sim, task, SensorMotion(sim.batch.model))
+
+
+def release_batch_worker() -> None:
+    global _BATCH
+    if _BATCH is not None:
+        _BATCH[0].close()
+        _BATCH = None
+
+
+def evaluate_batch(jobs: Sequence[tuple[SimpleBehaviour | ComplexBehaviour, int | tuple]]) -> list[np.ndarray]:
+    """`evaluate_job` for a list of jobs at once, as one batch of `felis.sim.batch.DropBatch` (every cat stepped
+    together, each job's behaviour evaluated for its rows in one numpy call per tick): the same (f, D, S, up_z,
+    landed) per job, within the batch's stated tolerance of the sequential path. Needs `init_batch_worker`."""
+    if _BATCH is None:
+        raise RuntimeError("evaluate_batch needs init_batch_worker(task) in this process first")
+    from felis.controllers.landing import LandingBatch
+    from felis.learning.landing.evaluate import outcome_of
+    from felis.scenarios.drop import Drop
+
+    sim, task, motion = _BATCH
+    if not jobs:
+        return []
+    drops, steps, policies, index, ids = [], [], [], [], {}
+    for behaviour, k in jobs:
+        if isinstance(k, int | np.integer):
+            drops.append(Drop(*task.orientations[k], task.heights_m[k]))
+            steps.append(task.steps)
+        else:
+            drops.append(Drop(*k[:3], k[3]))
+            steps.append(GENERAL_STEPS)
+        if id(behaviour) not in ids:
+            ids[id(behaviour)] = len(policies)
+            policies.append(behaviour)
+        index.append(ids[id(behaviour)])
+    B, T = len(jobs), max(steps)
+    J = len(motion.index.start)
+    vec = np.zeros((B, T + 1, J, 3))
+    heights = np.zeros((B, T + 1))
+    up = np.zeros((B, T + 1))
+    lower = np.zeros((B, T + 1))
+    a_up, a_waist = sim.batch.adr["up_z"], sim.batch.adr["waist_z"]
+
+    def keep(rows: np.ndarray, sd: np.ndarray, k: int) -> None:  # the state the controller reads at tick k
+        vec[rows, k] = motion.vectors(sd)
+        heights[rows, k] = 1000.0 * sd[:, a_waist]
+        up[rows, k] = sd[:, a_up]
+        lower[rows, k] = motion.lower_up_z(sd)
+
+    _, sens0 = sim.batch.initial(drops)
+    keep(np.arange(B), sens0, 0)
+    results = sim.batch.run(drops, LandingBatch(sim.spec, policies, np.array(index)), sim.standing_waist_m,
+                            ticks=steps, record=lambda k, st, sd, rows: keep(rows, sd[:, -1], k + 1))
+    out = []
+    for i, ((_, k), d, r) in enumerate(zip(jobs, drops, results, strict=True)):
+        n = steps[i]
+        if r.diverged:
+            roll = Rollout(vec[i, :n], heights[i, :n], float("nan"), complete=False)
+        else:
+            o = outcome_of(d, "", r, sim.standing_waist_m)
+            roll = Rollout(vec[i, :n], heights[i, :n], float(r.final_up_z), landed=bool(o.landed),
+                           landing=_landing_of(o, up[i, :n], lower[i, :n]))
+        out.append(score(task, k, roll))
+    return out
 
 
 def run_rollout(sim, task: Task, policy, k: int | tuple) -> Rollout:

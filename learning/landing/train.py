@@ -105,11 +105,11 @@ from felis.learning.landing.plot import plot_curves
 from felis.learning.landing.policy import DROP_HEIGHT_M, ComplexBehaviour, GeneUnit, SimpleBehaviour
 from felis.learning.landing.task import (
     Task,
-    evaluate_job,
-    init_worker,
+    evaluate_batch,
+    init_batch_worker,
     load_task_samples,
     make_task,
-    release_worker,
+    release_batch_worker,
     samples_fingerprint,
 )
 
@@ -252,11 +252,20 @@ def _write_outputs(cfg, task, idx, samples, state, fingerprint, out_path, run) -
 # ------------------------------------------------------------------------------------------ training
 
 
+def _evaluate(ev: Evaluator, jobs: list) -> np.ndarray:
+    """(f, D, S, up_z, landed) of every job, in job order: the jobs cut into one batch per evaluator worker,
+    each batch stepped together (`task.evaluate_batch`, `felis.sim.batch.DropBatch`)."""
+    n = max(1, min(len(jobs), int(getattr(ev, "workers", 1) or 1)))
+    bounds = np.linspace(0, len(jobs), n + 1).round().astype(int)
+    parts = ev.map(evaluate_batch, [jobs[a:b] for a, b in zip(bounds, bounds[1:], strict=False)])
+    return np.array([m for part in parts for m in part], dtype=float)
+
+
 def _simple_generation(state: TrainState, cfg: TrainConfig, ev: Evaluator) -> dict:
     pops = state.simple
     k_n, n = len(pops), cfg.population
     jobs = [(b, k) for k in range(k_n) for b in pops[k]]
-    marks = np.array(ev.map(evaluate_job, jobs), dtype=float).reshape(k_n, n, 5)
+    marks = _evaluate(ev, jobs).reshape(k_n, n, 5)
     gen = state.generation + 1
     new = []
     for k in range(k_n):
@@ -273,7 +282,7 @@ def _simple_generation(state: TrainState, cfg: TrainConfig, ev: Evaluator) -> di
 def _complex_generation(state: TrainState, cfg: TrainConfig, ev: Evaluator, k_n: int) -> dict:
     frozen = tuple(state.frozen)
     jobs = [(ComplexBehaviour(frozen, u), k) for u in state.compose for k in range(k_n)]
-    marks = np.array(ev.map(evaluate_job, jobs), dtype=float).reshape(len(state.compose), k_n, 5)
+    marks = _evaluate(ev, jobs).reshape(len(state.compose), k_n, 5)
     order, sc = rank_marks(marks, cfg.use_similarity)
     gen = state.generation + 1
     hc = state.history["complex"]
@@ -312,7 +321,7 @@ def _general_generation(state: TrainState, cfg: TrainConfig, ev: Evaluator) -> d
     gen = state.generation + 1
     drops = general_drops(cfg, gen)
     jobs = [(b, d) for b in pop for d in drops]
-    marks = np.array(ev.map(evaluate_job, jobs), dtype=float).reshape(len(pop), len(drops), 5)
+    marks = _evaluate(ev, jobs).reshape(len(pop), len(drops), 5)
     f_max = 5.0 if cfg.fitness == "landing" else max(1.0, float(marks[:, :, 0].max()))
     sc = marks[:, :, 4].sum(axis=1) + marks[:, :, 0].mean(axis=1) / (f_max + 1.0)
     order = np.lexsort((np.arange(len(pop)), -sc))  # best first; ties: earlier first (elites stay first)
@@ -327,7 +336,7 @@ def _one_generation(state: TrainState, cfg: TrainConfig, ev: Evaluator, k_n: int
     ranked by eq. 11 like the compose units."""
     pop = state.simple[0]
     jobs = [(b, k) for b in pop for k in range(k_n)]
-    marks = np.array(ev.map(evaluate_job, jobs), dtype=float).reshape(len(pop), k_n, 5)
+    marks = _evaluate(ev, jobs).reshape(len(pop), k_n, 5)
     order, sc = rank_marks(marks, cfg.use_similarity)
     gen = state.generation + 1
     hc = state.history["complex"]
@@ -383,7 +392,7 @@ def train_landing(cfg: TrainConfig, out_path: str | Path, workdir: str | Path, r
     resumed = bool(resume and ckpt.exists())
     state = load_checkpoint(ckpt, run_id) if resumed else _start(cfg, task.k)
     t_start = time.perf_counter()
-    ev = make_evaluator(cfg.ray_address, cfg.workers, initializer=init_worker, initargs=(task,))
+    ev = make_evaluator(cfg.ray_address, cfg.workers, initializer=init_batch_worker, initargs=(task,))
     where = ev.describe()
     try:
         while state.stage != "done":
@@ -424,6 +433,6 @@ def train_landing(cfg: TrainConfig, out_path: str | Path, workdir: str | Path, r
                 progress(stage, gen, total, info | {"seconds": time.perf_counter() - t0})
     finally:
         ev.close()
-        release_worker()
+        release_batch_worker()
     run = {"resumed": resumed, "seconds": round(time.perf_counter() - t_start, 3), "evaluator": where}
     return _write_outputs(cfg, task, idx, samples, state, fingerprint, out, run)

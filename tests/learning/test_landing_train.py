@@ -361,7 +361,9 @@ def test_policy_file_loads_and_runs_in_the_landing_controller(tmp_path, samples)
     finally:
         sim.close()
     final = res["final"][1]
-    assert marks.tolist() == [final["f"], final["D"], final["S"], final["up_z"], float(final["landed"])]
+    # training runs batched (`felis.sim.batch`): the sequential rollout agrees within the batch's tolerance
+    assert marks.tolist() == pytest.approx([final["f"], final["D"], final["S"], final["up_z"],
+                                            float(final["landed"])], rel=1e-6, abs=1e-6)
 
 
 def test_f_only_mode_runs(tmp_path, samples):

@@ -1,0 +1,235 @@
+"""The per-drop optimum (issue 21): for each drop, the best open-loop whole-body motion that CMA-ES finds.
+
+This is the ceiling the landing goals refer to: a motion tuned for one known drop, which no policy that
+only senses the cat can beat by much. ``felis eval landing --policy optimum`` runs it.
+
+**Motion family** (`motion_table`). A closed loop through `N_WAYPOINTS` waypoints of 8 angles each —
+spine (pitch, yaw), tail (pitch, yaw), front legs (pitch, roll), hind legs (pitch, roll); the two legs of a
+pair move together (`BODY_JOINTS`), leg angles within ±1.5 rad, spine and tail within ±1 rad — run again and
+again from the release pose at the servos' top speed (each leg of the loop as many whole ticks as its
+fastest joint needs), then, ``return_s`` before the predicted touchdown √(2h/g), every joint heads straight
+to the touchdown posture at full speed: spine and tail straight, each leg pair at a searched pitch, shared
+roll and splay (within ±0.6 rad; all 0 is the release pose, legs down). Loops of the spine, of the legs
+(out across the roll axis, back along it) and of both turn the cat in the air without angular momentum
+(docs/landing.md, "What limits it"); the family reaches the zero-gravity figures that the issue quotes.
+As in every landing run, `felis.controllers.landing.LandingBatch` integrates the motion's velocities and
+holds the spine straight below 0.5 m, and the safety layer caps each step.
+
+**Search** (`optimise`). Parameters x ∈ [−1, 1]^55 (48 waypoint angles / their limits, the return time
+mapped onto [`RETURN_MIN_S`, `RETURN_MAX_S`], the 6 posture angles / 0.6 rad).
+Generation 0 evaluates the `seeds` (the spine's circle both
+ways, the legs' loop both ways with the spine's circle both ways, and holding still); then `cma`'s CMA-ES
+runs from the best seed (σ₀ = `SIGMA0`), and, with ``restarts``, again from the next seeds. Every drop is
+searched at once: each generation's candidates of every drop are one batch (`felis.sim.batch.DropBatch`).
+A drop stops as soon as a candidate lands. Score (maximised) = 3·landed + 0.5·feet only + (1 − tilt at
+touchdown / 180°) + (1 − tilt 0.5 s later / 180°). Deterministic per seed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from felis.errors import ParameterError
+from felis.rotations import G, tilt_from_up
+from felis.scenarios.drop import Drop
+from felis.scenarios.verdicts import landing_verdict
+
+DT = 0.01
+N_WAYPOINTS = 6
+BODY_JOINTS = (0, 1, 2, 3, 4, 5, 4, 5, 6, 7, 6, 7)  # 12 joints from the 8 angles of a waypoint
+LIMITS = np.array((1.0, 1.0, 1.0, 1.0, 1.5, 1.5, 1.5, 1.5))  # rad
+RETURN_MIN_S, RETURN_MAX_S = 0.05, 0.35
+POSTURE_LIMIT = 0.6  # rad: the touchdown posture's leg angles
+N_POSTURE = 6  # front pitch, front roll (common), front splay, hind pitch, hind roll, hind splay
+DIMS = N_WAYPOINTS * 8 + 1 + N_POSTURE
+SIGMA0 = 0.3
+POPULATION = 12
+GENERATIONS = 30
+
+
+def decode(x: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """x ∈ [−1, 1]^55 → (waypoints (6, 8) in rad, return time in s, touchdown posture (12,) in rad).
+
+    The posture moves the legs only: per pair, pitch, a roll both legs share and a splay (left + s, right − s)."""
+    x = np.clip(np.asarray(x, dtype=float), -1.0, 1.0)
+    n = N_WAYPOINTS * 8
+    w = x[:n].reshape(N_WAYPOINTS, 8) * LIMITS
+    r = RETURN_MIN_S + (x[n] + 1.0) * 0.5 * (RETURN_MAX_S - RETURN_MIN_S)
+    fp, fr, fs, hp, hr, hs = np.round(x[n + 1:n + 1 + N_POSTURE] * POSTURE_LIMIT, 3)
+    posture = np.array([0, 0, 0, 0, fp, fr + fs, fp, fr - fs, hp, hr + hs, hp, hr - hs], dtype=float)
+    return w, float(r), posture
+
+
+def motion_table(x: np.ndarray, height_m: float, speed: float, n_ticks: int) -> np.ndarray:
+    """Joint velocities (n_ticks, 12) in rad/s of the motion ``x`` (module doc) for a drop from ``height_m``,
+    joints at ``speed`` rad/s; tick k's row is the velocity the controller integrates at t = k·DT."""
+    w, return_s, posture = decode(x)
+    w = np.round(w, 3)[:, BODY_JOINTS]
+    back_at = max(1, int(round((math.sqrt(2.0 * height_m / G) - return_s) / DT)))
+    path, prev, i, stalled = [np.zeros(12)], np.zeros(12), 0, 0
+    while len(path) <= back_at and stalled <= N_WAYPOINTS:  # the loop, again and again
+        p = w[i % N_WAYPOINTS]
+        i += 1
+        d = p - prev
+        ticks = math.ceil(float(np.abs(d).max()) / (speed * DT) - 1e-9)
+        if ticks <= 0:
+            stalled += 1  # every waypoint where the last one was: hold
+            continue
+        stalled = 0
+        path += [prev + d * (s / ticks) for s in range(1, ticks + 1)]
+        prev = p
+    path = path[:back_at + 1]
+    path += [path[-1]] * (back_at + 1 - len(path))
+    p = path[-1]  # then straight to the touchdown posture
+    d = posture - p
+    ticks = max(1, math.ceil(float(np.abs(d).max()) / (speed * DT) - 1e-9))
+    path += [p + d * (s / ticks) for s in range(1, ticks + 1)]
+    path += [posture] * max(0, n_ticks - len(path))
+    v = np.zeros((n_ticks, 12))
+    v[1:] = np.diff(np.array(path[:n_ticks]), axis=0) / DT
+    return v
+
+
+def _circle(sign: int) -> np.ndarray:
+    ring = [(1.0, 0.0), (0.0, sign * 1.0), (-1.0, 0.0), (0.0, -sign * 1.0)]
+    return np.array([ring[i % 4] for i in range(N_WAYPOINTS)])
+
+
+def _leg_loop(sign: int) -> np.ndarray:
+    ring = [(0.0, sign * 1.0), (1.0, sign * 1.0), (1.0, 0.0), (0.0, 0.0)]  # in units of the limits
+    return np.array([ring[i % 4] for i in range(N_WAYPOINTS)])
+
+
+def seeds() -> np.ndarray:
+    """Generation 0 (module doc): (9, 55) motions in x units."""
+    out = []
+    for sc in (+1, -1):
+        x = np.zeros((N_WAYPOINTS, 8))
+        x[:, :2] = _circle(sc)
+        out.append(x)
+        for sl in (+1, -1):
+            x = np.zeros((N_WAYPOINTS, 8))
+            x[:, :2] = _circle(sc)
+            x[:, 4:6] = x[:, 6:8] = _leg_loop(sl)
+            out.append(x)
+    for sl in (+1, -1):
+        x = np.zeros((N_WAYPOINTS, 8))
+        x[:, 4:6] = x[:, 6:8] = _leg_loop(sl)
+        out.append(x)
+    out.append(np.zeros((N_WAYPOINTS, 8)))
+    return np.array([np.concatenate([x.ravel(), np.zeros(1 + N_POSTURE)]) for x in out])
+
+
+class OpenLoop:
+    """A `LandingBatch` policy: per cat, the velocity table of its motion; ``tables`` (B, n_ticks, 12)."""
+
+    def __init__(self, tables: np.ndarray):
+        self.tables = tables
+
+    def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        k = np.clip(np.rint(t / DT).astype(int), 0, self.tables.shape[1] - 1)
+        return self.tables[rows, k]
+
+
+def score(result, standing_waist_m: float) -> tuple[float, object]:
+    """(score, verdict) of one `felis.sim.batch.BatchResult` (module doc)."""
+    v = landing_verdict(result.truth)
+    if result.diverged:
+        return -1.0, v
+    td = tilt_from_up(float(result.truth.up_z[0])) if len(result.truth.up_z) else 180.0
+    end = v.tilt_deg if v.tilt_deg is not None else 180.0
+    s = 3.0 * v.landed + 0.5 * v.foot_only + (1.0 - td / 180.0) + (1.0 - end / 180.0)
+    return float(s), v
+
+
+@dataclass
+class DropOptimum:
+    drop: Drop
+    landed: bool
+    score: float
+    x: list[float]  # the best motion, in x units (`decode`)
+    rollouts: int
+    why: str
+    tilt_deg: float | None
+
+    def as_dict(self) -> dict:
+        return {**self.drop.as_dict(), "landed": self.landed, "why": self.why or None,
+                "tilt_deg": None if self.tilt_deg is None else round(self.tilt_deg, 2),
+                "score": round(self.score, 4), "rollouts": self.rollouts,
+                "motion_x": [round(v, 4) for v in self.x]}
+
+
+def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray) -> list[tuple[float, object]]:
+    """Score motions ``xs`` (B, 55) on ``drops`` (B) in one batch of ``sim`` (`BatchLandingSim`)."""
+    from felis.controllers.landing import LandingBatch
+    from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
+    from felis.learning.landing.policy import MAX_SPEED
+
+    n_ticks = [int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops]
+    T = max(n_ticks)
+    tables = np.stack([motion_table(x, d.height_m, MAX_SPEED, T) for x, d in zip(xs, drops, strict=True)])
+    ctl = LandingBatch(sim.spec, [OpenLoop(tables)])
+    results = sim.batch.run(list(drops), ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
+    return [score(r, sim.standing_waist_m) for r in results]
+
+
+def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
+             restarts: int = 0, seed: int = 0, workers: int | None = None,
+             progress: Callable[[int, int], None] | None = None, sim=None) -> list[DropOptimum]:
+    """The per-drop optimum of every drop (module doc); ``progress(generation, drops still searching)``."""
+    import cma
+
+    from felis.learning.landing.evaluate import BatchLandingSim
+
+    if generations < 0 or population < 2 or restarts < 0:
+        raise ParameterError("optimum: generations ≥ 0, population ≥ 2 and restarts ≥ 0 are needed")
+    own = sim is None
+    sim = sim or BatchLandingSim(nthread=workers)
+    try:
+        n = len(drops)
+        S = seeds()
+        best_s = np.full(n, -np.inf)
+        best_x = np.zeros((n, DIMS))
+        best_v: list = [None] * n
+        used = np.zeros(n, dtype=int)
+        # generation 0: every seed on every drop
+        res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)))
+        order = []
+        for i in range(n):
+            sc = np.array([res[i * len(S) + j][0] for j in range(len(S))])
+            order.append(np.argsort(-sc, kind="stable"))
+            j = int(order[i][0])
+            best_s[i], best_x[i], best_v[i] = sc[j], S[j], res[i * len(S) + j][1]
+            used[i] += len(S)
+        for start in range(restarts + 1):
+            active = [i for i in range(n) if not best_v[i].landed]
+            es = {i: cma.CMAEvolutionStrategy(S[int(order[i][min(start, len(S) - 1)])], SIGMA0,
+                                              {"popsize": population, "bounds": [-1.0, 1.0], "verbose": -9,
+                                               "seed": int(seed * 100003 + i * 101 + start + 1)})
+                  for i in active}
+            for g in range(generations):
+                active = [i for i in active if not best_v[i].landed]
+                if progress is not None:
+                    progress(start * generations + g, len(active))
+                if not active:
+                    break
+                asks = {i: np.array(es[i].ask()) for i in active}
+                batch_drops = [drops[i] for i in active for _ in range(population)]
+                res = evaluate(sim, batch_drops, np.concatenate([asks[i] for i in active]))
+                for a, i in enumerate(active):
+                    part = res[a * population:(a + 1) * population]
+                    sc = np.array([r[0] for r in part])
+                    es[i].tell(list(asks[i]), list(-sc))
+                    used[i] += population
+                    j = int(np.argmax(sc))
+                    if sc[j] > best_s[i]:
+                        best_s[i], best_x[i], best_v[i] = sc[j], asks[i][j], part[j][1]
+        return [DropOptimum(d, bool(best_v[i].landed), float(best_s[i]), best_x[i].tolist(), int(used[i]),
+                            best_v[i].why, best_v[i].tilt_deg) for i, d in enumerate(drops)]
+    finally:
+        if own:
+            sim.close()
