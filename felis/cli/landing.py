@@ -171,10 +171,8 @@ def _eval_optimum(args, drops) -> int:
     landed = [o.landed for o in best]
     reasons: dict[str, int] = {}
     for o in best:
-        if o.why:
-            for k in o.why.split("; "):
-                k = k.split(" touched")[0] + " touched the ground" if " touched" in k else k.split(" after")[0]
-                reasons[k] = reasons.get(k, 0) + 1
+        for k in o.reasons:
+            reasons[k] = reasons.get(k, 0) + 1
     res = {"success_rate": round(sum(landed) / len(best), 4) if best else None, "policy": "optimum",
            "landed": sum(landed), "total": len(best),
            "reasons": dict(sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))),

@@ -18,11 +18,12 @@ holds the spine straight below 0.5 m, and the safety layer caps each step.
 **Search** (`optimise`). Parameters x ∈ [−1, 1]^55 (48 waypoint angles / their limits, the return time
 mapped onto [`RETURN_MIN_S`, `RETURN_MAX_S`], the 6 posture angles / 0.6 rad).
 Generation 0 evaluates the `seeds` (the spine's circle both
-ways, the legs' loop both ways with the spine's circle both ways, and holding still); then `cma`'s CMA-ES
-runs from the best seed (σ₀ = `SIGMA0`), and, with ``restarts``, again from the next seeds. Every drop is
+ways, the legs' loop both ways with the spine's circle both ways, holding still, and four touchdown postures
+after holding still); then `cma`'s CMA-ES runs from the best seed (σ₀ = `SIGMA0`), and, with ``restarts``,
+again from the next seeds. Every drop is
 searched at once: each generation's candidates of every drop are one batch (`felis.sim.batch.DropBatch`).
-A drop stops as soon as a candidate lands. Score (maximised) = 3·landed + 0.5·feet only + (1 − tilt at
-touchdown / 180°) + (1 − tilt 0.5 s later / 180°). Deterministic per seed.
+A drop stops as soon as a candidate lands. Score (maximised, `score`): training's landing fitness plus 3
+for a landing. Deterministic per seed.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.rotations import G, tilt_from_up
+from felis.rotations import G
 from felis.scenarios.drop import Drop
 from felis.scenarios.verdicts import landing_verdict
 
@@ -105,7 +106,7 @@ def _leg_loop(sign: int) -> np.ndarray:
 
 
 def seeds() -> np.ndarray:
-    """Generation 0 (module doc): (9, 55) motions in x units."""
+    """Generation 0 (module doc): (13, 55) motions in x units: 9 loops (or holding still), 4 postures."""
     out = []
     for sc in (+1, -1):
         x = np.zeros((N_WAYPOINTS, 8))
@@ -121,7 +122,57 @@ def seeds() -> np.ndarray:
         x[:, 4:6] = x[:, 6:8] = _leg_loop(sl)
         out.append(x)
     out.append(np.zeros((N_WAYPOINTS, 8)))
-    return np.array([np.concatenate([x.ravel(), np.zeros(1 + N_POSTURE)]) for x in out])
+    loops = [np.concatenate([x.ravel(), np.zeros(1 + N_POSTURE)]) for x in out]
+    postures = []  # hold still, then take a touchdown posture: legs splayed, tucked or reached
+    for fp, fs, hp, hs in ((0, 1, 0, 1), (1, 0, -1, 0), (-1, 0, 1, 0), (0.5, 0.5, -0.5, 0.5)):
+        p = np.zeros(DIMS)
+        p[N_WAYPOINTS * 8 + 1:] = (fp, 0.0, fs, hp, 0.0, hs)
+        postures.append(p)
+    return np.array(loops + postures)
+
+
+class MotionRule:
+    """One motion of the family as a policy callable ``(it, t) -> (12,)`` (`felis.controllers.landing.
+    LandingController`, `felis.learning.landing.samples.rollout`): the velocity table of ``x`` for a drop from
+    ``height_m``, ``steps`` ticks long; data as ``{"kind": "whole-body", "motion_x", "height_m", "steps"}``."""
+
+    kind = "whole-body"
+
+    def __init__(self, x, height_m: float, steps: int, speed: float | None = None):
+        from felis.learning.landing.policy import MAX_SPEED
+
+        x = np.asarray(x, dtype=float)
+        if x.shape != (DIMS,) or not np.all(np.isfinite(x)):
+            raise ParameterError(f"whole-body motion: expected {DIMS} finite numbers, got shape {x.shape}")
+        if not (math.isfinite(height_m) and height_m > 0) or int(steps) < 1:
+            raise ParameterError("whole-body motion: needs a positive height_m and steps ≥ 1")
+        self.x, self.height_m, self.steps = x, float(height_m), int(steps)
+        self.table = motion_table(x, self.height_m, MAX_SPEED if speed is None else speed, self.steps)
+
+    @property
+    def duration(self) -> float:
+        return self.steps * DT
+
+    def __call__(self, it, t: float) -> np.ndarray:
+        k = int(round(float(t) / DT))
+        return self.table[k].copy() if 0 <= k < self.steps else np.zeros(12)
+
+    def as_dict(self) -> dict:
+        return {"kind": self.kind, "motion_x": [round(float(v), 6) for v in self.x], "height_m": self.height_m,
+                "steps": self.steps}
+
+    @staticmethod
+    def from_dict(d) -> MotionRule:
+        if not isinstance(d, dict) or d.get("kind") != MotionRule.kind or not isinstance(d.get("motion_x"), list):
+            raise ParameterError("whole-body motion: expected {kind: whole-body, motion_x: [...], height_m, steps}")
+        h, n = d.get("height_m"), d.get("steps")
+        if isinstance(h, bool) or not isinstance(h, int | float) or isinstance(n, bool) or not isinstance(n, int):
+            raise ParameterError("whole-body motion: height_m must be a number and steps a whole number")
+        try:
+            x = np.array(d["motion_x"], dtype=float)
+        except (TypeError, ValueError):
+            raise ParameterError("whole-body motion: motion_x must be numbers") from None
+        return MotionRule(x, float(h), n)
 
 
 class OpenLoop:
@@ -136,14 +187,23 @@ class OpenLoop:
 
 
 def score(result, standing_waist_m: float) -> tuple[float, object]:
-    """(score, verdict) of one `felis.sim.batch.BatchResult` (module doc)."""
+    """(score, verdict) of one `felis.sim.batch.BatchResult`: training's landing fitness
+    (`felis.learning.landing.nets.landing_score`: up-axis at touchdown, the clean share of the window, tilt and
+    waist after it, landed; 0…5) plus 3 more for a landing, so that any landing beats any near miss."""
+    from felis.learning.landing.nets import landing_score
+    from felis.scenarios.verdicts import WINDOW_S
+
     v = landing_verdict(result.truth)
     if result.diverged:
         return -1.0, v
-    td = tilt_from_up(float(result.truth.up_z[0])) if len(result.truth.up_z) else 180.0
-    end = v.tilt_deg if v.tilt_deg is not None else 180.0
-    s = 3.0 * v.landed + 0.5 * v.foot_only + (1.0 - td / 180.0) + (1.0 - end / 180.0)
-    return float(s), v
+    air = float(result.truth.up_z[0]) if len(result.truth.up_z) else -1.0
+    if v.touchdown_t is None:
+        clean = 0.0
+    else:
+        clean = 1.0 if v.foot_only else min(1.0, max(0.0, (v.touch_t - v.touchdown_t) / WINDOW_S))
+    waist = None if v.waist_m is None else v.waist_m / standing_waist_m
+    f = landing_score(air, clean, v.tilt_deg, waist, v.landed)
+    return float(f + 3.0 * v.landed), v
 
 
 @dataclass
@@ -155,9 +215,11 @@ class DropOptimum:
     rollouts: int
     why: str
     tilt_deg: float | None
+    reasons: tuple[str, ...] = ()  # the verdict's reasons, as kinds fit for counting
 
     def as_dict(self) -> dict:
         return {**self.drop.as_dict(), "landed": self.landed, "why": self.why or None,
+                "reasons": list(self.reasons),
                 "tilt_deg": None if self.tilt_deg is None else round(self.tilt_deg, 2),
                 "score": round(self.score, 4), "rollouts": self.rollouts,
                 "motion_x": [round(v, 4) for v in self.x]}
@@ -229,7 +291,8 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
                     if sc[j] > best_s[i]:
                         best_s[i], best_x[i], best_v[i] = sc[j], asks[i][j], part[j][1]
         return [DropOptimum(d, bool(best_v[i].landed), float(best_s[i]), best_x[i].tolist(), int(used[i]),
-                            best_v[i].why, best_v[i].tilt_deg) for i, d in enumerate(drops)]
+                            best_v[i].why, best_v[i].tilt_deg, tuple(k for k, _ in best_v[i].reasons))
+                for i, d in enumerate(drops)]
     finally:
         if own:
             sim.close()

@@ -366,11 +366,12 @@ def tune_rule(sim: Any, orientation: Sequence[float], rng: np.random.Generator, 
 # ------------------------------------------------------------------------------------------ samples
 @dataclass
 class Sample:
-    """One motion sample (§6.5): the rule for one training orientation and the motion it makes."""
+    """One motion sample (§6.5): the rule for one training orientation and the motion it makes (a spine
+    rule, or a whole-body motion `felis.learning.landing.optimum.MotionRule`: `felis.learning.landing.wholebody`)."""
 
     orientation: tuple[float, float, float]
     height_m: float
-    rule: SpineRule
+    rule: Any
     vectors: np.ndarray  # (T, J, 3)
     heights_mm: np.ndarray  # (T,)
     final_up_z: float
@@ -498,7 +499,12 @@ def load_samples(path: str | Path) -> list[Sample]:
             h = _number(e["height_m"], "height_m")
             if not h > 0:
                 raise ParameterError(f"height_m must be positive, got {h:g}")
-            rule = SpineRule.from_dict(e["rule"])
+            if isinstance(e["rule"], dict) and e["rule"].get("kind") == "whole-body":
+                from felis.learning.landing.optimum import MotionRule
+
+                rule = MotionRule.from_dict(e["rule"])
+            else:
+                rule = SpineRule.from_dict(e["rule"])
             fu = _number(e["final_up_z"], "final_up_z")
             if not isinstance(e["landed"], bool):
                 raise ParameterError(f"landed must be true or false, got {e['landed']!r}")

@@ -299,14 +299,15 @@ def start_tilt_deg(roll_deg: float, pitch_deg: float) -> float:
 
 
 def general_drops(cfg: TrainConfig, generation: int) -> list[tuple[float, float, float, float]]:
-    """The drops (roll, pitch, yaw °, height m) of general-stage generation ``generation`` (1-based): roll,
-    pitch and yaw uniform over the full circle as in `random_drops`, from a generator seeded by (seed,
-    generation), keeping those with `start_tilt_deg` ≤ ``general_max_tilt_deg``; heights
-    `GENERAL_HEIGHTS_M` in turn."""
+    """The drops (roll, pitch, yaw °, height m) of general-stage generation ``generation`` (1-based): orientations
+    uniform over all rotations as in `random_drops` (drawn from a generator seeded by (seed, generation)),
+    keeping those with `start_tilt_deg` ≤ ``general_max_tilt_deg``; heights `GENERAL_HEIGHTS_M` in turn."""
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng([cfg.seed, generation])
     out: list[tuple[float, float, float, float]] = []
     while len(out) < cfg.general_drops:
-        r, p, y = (float(a) for a in rng.uniform(-180.0, 180.0, size=3))
+        y, p, r = (float(a) for a in Rotation.random(random_state=rng).as_euler("ZYX", degrees=True))
         if start_tilt_deg(r, p) <= cfg.general_max_tilt_deg:
             out.append((r, p, y, GENERAL_HEIGHTS_M[len(out) % len(GENERAL_HEIGHTS_M)]))
     return out
