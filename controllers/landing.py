@@ -121,7 +121,12 @@ class LandingBatch:
         index = np.zeros(B, dtype=int) if self.index is None else self.index
         if index.shape != (B,) or (B and (index.min() < 0 or index.max() >= len(self.policies))):
             raise ParameterError(f"landing: {B} cats need {B} policy indices into {len(self.policies)} policies")
-        self._groups = [(p, np.flatnonzero(index == i)) for i, p in enumerate(self.policies)]
+        from felis.learning.landing.policy import SimpleBehaviour, StackedSimple
+
+        if len(self.policies) > 1 and all(isinstance(p, SimpleBehaviour) for p in self.policies):
+            self._groups = [(StackedSimple(self.policies, index), np.arange(B))]  # a population: one stack
+        else:
+            self._groups = [(p, np.flatnonzero(index == i)) for i, p in enumerate(self.policies)]
         self._q = np.clip(np.asarray(q, dtype=float), self.spec.lower, self.spec.upper)
         self._t0 = np.array(t, dtype=float)
         self._t = np.array(t, dtype=float)

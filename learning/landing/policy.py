@@ -269,6 +269,40 @@ def _drive_many(spine: GeneUnit, tail: GeneUnit, legs: GeneUnit, it: np.ndarray)
     return np.concatenate((spine.scale * s, tail.scale * tail.raw_many(x), legs.scale * legs.raw_many(x)), axis=1)
 
 
+class StackedSimple:
+    """Many simple behaviours evaluated for a batch of cats in one go (`felis.controllers.landing.LandingBatch`
+    with a population): each part's units are padded to the largest hidden layer with zero weights (a zero
+    hidden neuron adds tanh(0)·0 = 0) and stacked, then gathered per row, so a tick is six `numpy.einsum`s
+    whatever the number of behaviours. ``index[b]``: the behaviour of row b."""
+
+    def __init__(self, behaviours: Sequence[SimpleBehaviour], index: np.ndarray):
+        index = np.asarray(index, dtype=int)
+        self.parts = []
+        for part in PARTS:
+            units = [getattr(b, part) for b in behaviours]
+            n_in = _kind(part).n_available
+            h = max(u.hidden for u in units)
+            n_out = len(_kind(part).outputs)
+            A, b1 = np.zeros((len(units), h, n_in)), np.zeros((len(units), h))
+            C, b2 = np.zeros((len(units), n_out, h)), np.zeros((len(units), n_out))
+            scale = np.array([u.scale for u in units])
+            for i, u in enumerate(units):
+                a, c1, c, c2 = u._weights()
+                A[i, :u.hidden], b1[i, :u.hidden], C[i, :, :u.hidden], b2[i] = a, c1, c, c2
+            self.parts.append((A[index], b1[index], C[index], b2[index], scale[index][:, None]))
+
+    def velocities_many(self, it: np.ndarray) -> np.ndarray:
+        """(B, 12) joint velocities for IT (B, 15), row b by behaviour ``index[b]``."""
+        def raw(p, x):
+            A, b1, C, b2, _ = p
+            return np.tanh(np.einsum("boh,bh->bo", C, np.tanh(np.einsum("bhn,bn->bh", A, x) + b1)) + b2)
+
+        sp, tl, lg = self.parts
+        s = raw(sp, it)
+        x = np.concatenate((it, s), axis=1)
+        return np.concatenate((sp[4] * s, tl[4] * raw(tl, x), lg[4] * raw(lg, x)), axis=1)
+
+
 def _drive(spine: GeneUnit, tail: GeneUnit, legs: GeneUnit, it: np.ndarray) -> np.ndarray:
     s = spine.raw(it)
     x = np.concatenate((it, s))

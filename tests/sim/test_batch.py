@@ -74,3 +74,16 @@ def test_upright_drop_lands_and_upside_down_does_not():
     out = run_drops([Drop(0.0, 0.0, 0.0, 0.3), Drop(180.0, 0.0, 0.0, 0.3)], "passive", workers=1)
     assert out[0].landed and not out[1].landed
     assert out[1].tilt_deg > 150 and math.isfinite(out[1].peak_impact)
+
+
+def test_a_stacked_population_gives_each_row_its_own_behaviour():
+    from felis.learning.landing.nets import random_simple
+    from felis.learning.landing.policy import StackedSimple
+
+    rng = np.random.default_rng(3)
+    pop = [random_simple(rng, 8) for _ in range(5)]
+    index = rng.integers(0, 5, size=40)
+    it = rng.uniform(-1, 1, (40, 15))
+    got = StackedSimple(pop, index).velocities_many(it)
+    want = np.stack([pop[i].velocities(it[b]) for b, i in enumerate(index)])
+    assert np.allclose(got, want, rtol=0, atol=1e-12)
