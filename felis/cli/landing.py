@@ -77,9 +77,15 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--generations", type=int, default=30, help="optimum: CMA-ES generations per start (default 30)")
     e.add_argument("--population", type=int, default=12, help="optimum: CMA-ES population (default 12)")
     e.add_argument("--restarts", type=int, default=0, help="optimum: further starts from the next seeds (default 0)")
+    e.add_argument("--checkpoint", type=Path, metavar="DIR",
+                   help="optimum: append each finished drop to DIR/optimum.jsonl (with --resume: skip those)")
+    e.add_argument("--resume", action="store_true", help="optimum: continue from --checkpoint DIR")
+    e.add_argument("--ray-address", metavar="ADDRESS|auto|local",
+                   help="optimum: search chunks of drops on a Ray cluster (pip install felis[cluster])")
     e.add_argument("--seed", type=int, default=0, help="seed of random:N (default 0)")
     e.add_argument("--height", type=float, metavar="M", help="drop height for random:N (m, default 1.0)")
-    e.add_argument("--workers", type=int, help="rollout threads (default: every core)")
+    e.add_argument("--workers", type=int, help="rollout threads (default: every core); optimum: processes, one "
+                   "thread each (default: this process, every core)")
     e.add_argument("--out", type=Path, metavar="FILE.json", help="also write the JSON result to this file")
     e.add_argument("--json", action="store_true", help="print the result as JSON")
     e.set_defaults(func=cmd_eval_landing)
@@ -157,17 +163,20 @@ def cmd_eval_landing(args) -> int:
 
 def _eval_optimum(args, drops) -> int:
     from felis.learning.landing.evaluate import by_tilt
-    from felis.learning.landing.optimum import optimise
+    from felis.learning.landing.optimum import optimise_all
 
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
+    if args.resume and not args.checkpoint:
+        raise ParameterError("--resume needs --checkpoint DIR (where the finished drops were written)")
     output.check_json_out(args.out)
     quiet = args.json or not sys.stderr.isatty()
-    total = args.generations * (args.restarts + 1)
-    bar, step = output.progress(total, "generations", quiet)
+    bar, step = output.progress(len(drops), "drops", quiet)
     with bar:
-        best = optimise(drops, generations=args.generations, population=args.population, restarts=args.restarts,
-                        seed=args.seed, workers=args.workers, progress=lambda g, n: step(1))
+        best = optimise_all(drops, generations=args.generations, population=args.population, restarts=args.restarts,
+                            seed=args.seed, workers=args.workers, ray_address=args.ray_address,
+                            workdir=str(args.checkpoint) if args.checkpoint else None, resume=args.resume,
+                            progress=step)
     landed = [o.landed for o in best]
     reasons: dict[str, int] = {}
     for o in best:

@@ -217,6 +217,12 @@ class DropOptimum:
     tilt_deg: float | None
     reasons: tuple[str, ...] = ()  # the verdict's reasons, as kinds fit for counting
 
+    @staticmethod
+    def from_dict(d: dict) -> DropOptimum:
+        return DropOptimum(Drop(d["roll_deg"], d["pitch_deg"], d["yaw_deg"], d["height_m"]), bool(d["landed"]),
+                           float(d["score"]), [float(v) for v in d["motion_x"]], int(d["rollouts"]), d["why"] or "",
+                           d["tilt_deg"], tuple(d.get("reasons", ())))
+
     def as_dict(self) -> dict:
         return {**self.drop.as_dict(), "landed": self.landed, "why": self.why or None,
                 "reasons": list(self.reasons),
@@ -241,14 +247,20 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray) -> list[tuple[float, ob
 
 def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
              restarts: int = 0, seed: int = 0, workers: int | None = None,
-             progress: Callable[[int, int], None] | None = None, sim=None) -> list[DropOptimum]:
-    """The per-drop optimum of every drop (module doc); ``progress(generation, drops still searching)``."""
+             progress: Callable[[int, int], None] | None = None, sim=None,
+             index: Sequence[int] | None = None) -> list[DropOptimum]:
+    """The per-drop optimum of every drop (module doc); ``progress(generation, drops still searching)``.
+    ``index``: each drop's index in the whole list (default 0, 1, …): its CMA-ES is seeded by it, so a drop's
+    result does not depend on how the list is cut."""
     import cma
 
     from felis.learning.landing.evaluate import BatchLandingSim
 
     if generations < 0 or population < 2 or restarts < 0:
         raise ParameterError("optimum: generations ≥ 0, population ≥ 2 and restarts ≥ 0 are needed")
+    ids = list(range(len(drops))) if index is None else [int(i) for i in index]
+    if len(ids) != len(drops):
+        raise ParameterError(f"optimum: {len(drops)} drops need {len(drops)} indices, got {len(ids)}")
     own = sim is None
     sim = sim or BatchLandingSim(nthread=workers)
     try:
@@ -271,7 +283,7 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
             active = [i for i in range(n) if not best_v[i].landed]
             es = {i: cma.CMAEvolutionStrategy(S[int(order[i][min(start, len(S) - 1)])], SIGMA0,
                                               {"popsize": population, "bounds": [-1.0, 1.0], "verbose": -9,
-                                               "seed": int(seed * 100003 + i * 101 + start + 1)})
+                                               "seed": int(seed * 100003 + ids[i] * 101 + start + 1)})
                   for i in active}
             for g in range(generations):
                 active = [i for i in active if not best_v[i].landed]
@@ -296,3 +308,82 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
     finally:
         if own:
             sim.close()
+
+
+# ------------------------------------------------------------------------------ long runs: chunks, resume
+CHECKPOINT = "optimum.jsonl"
+_SIM = None  # per evaluator worker: its batch simulation
+
+
+def _init_worker() -> None:
+    global _SIM
+    import multiprocessing
+
+    from felis.learning.landing.evaluate import BatchLandingSim
+
+    _SIM = BatchLandingSim(nthread=None if multiprocessing.parent_process() is None else 1)
+
+
+def _chunk_job(job) -> list[dict]:
+    index, drops, settings = job
+    return [o.as_dict() for o in optimise(drops, sim=_SIM, index=index, **settings)]
+
+
+def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
+                 restarts: int = 0, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
+                 chunk: int = 25, workdir: str | None = None, resume: bool = False,
+                 progress: Callable[[int], None] | None = None) -> list[DropOptimum]:
+    """`optimise` for a long list: cut into chunks of ``chunk`` drops, one chunk per evaluator worker at a time
+    (`felis.learning.common.evaluator`: a process pool of ``workers``, or Ray at ``ray_address``; one worker:
+    this process, every core on the chunk's batch), each finished drop appended to ``workdir``/`CHECKPOINT`
+    (JSON lines after a header with the settings and the drops); ``resume`` skips the drops already there.
+    Results equal one `optimise` over the whole list (each drop is searched alone); ``progress(n)`` after
+    each round of chunks, n drops done in it."""
+    import json
+    from pathlib import Path
+
+    from felis.learning.common.evaluator import make_evaluator
+
+    settings = {"generations": generations, "population": population, "restarts": restarts, "seed": seed}
+    header = {"settings": settings, "drops": [d.as_dict() for d in drops]}
+    done: dict[int, DropOptimum] = {}
+    ckpt = Path(workdir) / CHECKPOINT if workdir else None
+    if ckpt is not None:
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+        if resume and ckpt.exists():
+            lines = ckpt.read_text().splitlines()
+            try:
+                head = json.loads(lines[0]) if lines else None
+                rows = [json.loads(x) for x in lines[1:] if x.strip()]
+            except ValueError:  # a line cut by a kill: keep what parses
+                head, rows = (json.loads(lines[0]) if lines else None), []
+                for x in lines[1:]:
+                    try:
+                        rows.append(json.loads(x))
+                    except ValueError:
+                        break
+            if head != header:
+                raise ParameterError(f"{ckpt}: a checkpoint of other drops or settings; remove it or drop --resume")
+            done = {int(r["i"]): DropOptimum.from_dict(r) for r in rows}
+            ckpt.write_text("".join(json.dumps(x) + "\n" for x in [header, *rows]))  # without a cut last line
+        else:
+            ckpt.write_text(json.dumps(header) + "\n")
+    todo = [i for i in range(len(drops)) if i not in done]
+    chunks = [todo[k:k + chunk] for k in range(0, len(todo), chunk)]
+    ev = make_evaluator(ray_address, workers if ray_address else (workers or 1), initializer=_init_worker)
+    n_workers = max(1, int(getattr(ev, "workers", 1) or 1))
+    try:
+        for r in range(0, len(chunks), n_workers):
+            group = chunks[r:r + n_workers]
+            jobs = [(idx, [drops[i] for i in idx], settings) for idx in group]
+            for idx, res in zip(group, ev.map(_chunk_job, jobs), strict=True):
+                for i, d in zip(idx, res, strict=True):
+                    done[i] = DropOptimum.from_dict(d)
+                    if ckpt is not None:
+                        with ckpt.open("a") as f:
+                            f.write(json.dumps({"i": i, **d}) + "\n")
+            if progress is not None:
+                progress(sum(len(g) for g in group))
+    finally:
+        ev.close()
+    return [done[i] for i in range(len(drops))]

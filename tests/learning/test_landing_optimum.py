@@ -57,3 +57,25 @@ def test_optimiser_finds_a_landing_that_no_seed_has(sim):
     assert best.landed and best.rollouts < len(s) + 30 * 12
     again = evaluate(sim, [d], np.array([best.x]))[0]
     assert again[1].landed and again[0] == pytest.approx(best.score)
+
+
+def test_chunked_resumed_runs_equal_one_run(tmp_path, sim):
+    """optimise_all in chunks, killed after some drops and resumed, gives what one optimise over all gives."""
+    import json
+
+    from felis.learning.landing.optimum import CHECKPOINT, optimise_all
+
+    drops = [Drop(0.0, 40.0, 0.0, 0.6), Drop(20.0, -20.0, 30.0, 0.6), Drop(70.0, 0.0, 0.0, 0.6)]
+    kw = {"generations": 2, "population": 4, "restarts": 0, "seed": 1}
+    whole = optimise(drops, sim=sim, **kw)
+    full = optimise_all(drops, chunk=2, workdir=str(tmp_path), **kw)
+    assert [o.as_dict() for o in full] == [o.as_dict() for o in whole]
+    lines = (tmp_path / CHECKPOINT).read_text().splitlines()
+    assert len(lines) == 4
+    (tmp_path / CHECKPOINT).write_text("\n".join(lines[:2]) + "\n" + lines[2][:15])  # killed mid-line
+    resumed = optimise_all(drops, chunk=2, workdir=str(tmp_path), resume=True, **kw)
+    assert [o.as_dict() for o in resumed] == [o.as_dict() for o in whole]
+    assert len((tmp_path / CHECKPOINT).read_text().splitlines()) == 4  # the cut line replaced, nothing lost
+    with pytest.raises(Exception, match="other drops or settings"):
+        optimise_all(drops[:2], chunk=2, workdir=str(tmp_path), resume=True, **kw)
+    assert json.loads((tmp_path / CHECKPOINT).read_text().splitlines()[0])["settings"]["seed"] == 1
