@@ -10,6 +10,6 @@ from felis.errors import FelisError
 from felis.hal import Command, Imu, Lifecycle, Robot, State
 from felis.spec import JointSpec, RobotSpec, load_spec
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 __all__ = ["Command", "FelisError", "Imu", "JointSpec", "Lifecycle", "Robot", "RobotSpec", "State",
            "load_spec"]

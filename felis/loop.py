@@ -28,6 +28,9 @@ on every way out. The reads before the first tick (the state the controller is r
 after arming) follow the watchdog's rule: a failed one is tried again up to ``read_fail_tolerance``
 times, then raised (a bus under load can drop one group read).
 
+The log also gets an ``armed`` event when the loop arms the robot and a ``stopped`` event (the reason, the
+ticks) at the end, so a viewer's log panel shows where a run began and why it ended.
+
 The report gives the control path's time per tick (read → write, excluding monitors, logging,
 physics and sleep): mean, p99, max; the mean time of monitors + logging; and overruns: with the
 wall clock, ticks that ended past their deadline; with the simulated clock, ticks whose control
@@ -167,6 +170,8 @@ def run_loop(
     control = np.zeros(n_ticks)  # read → write
     extra = np.zeros(n_ticks)  # monitors + log
     name = getattr(controller, "name", type(controller).__name__)
+    log_timing = getattr(log, "timing", None)  # optional: the tick's control-path time (`felis.logs.runlog`)
+    log_tick = getattr(log, "tick", None)  # optional: state, command and time in one call (`RunLog.tick`)
 
     wall0 = deadline = time.perf_counter()
     stopped = "duration"
@@ -180,6 +185,8 @@ def run_loop(
         if robot.lifecycle is not Lifecycle.ARMED:
             robot.arm()
             state = _first_read(robot, cfg.read_fail_tolerance)
+            if log is not None:
+                log.event(state.t, "armed")
         controller.reset(robot.spec, state)
         layer.reset(state.q)
         for m in monitors:
@@ -243,9 +250,14 @@ def run_loop(
             t_ctrl = time.perf_counter()
             for m in monitors:
                 m(state, sent)
-            if log is not None:
+            if log_tick is not None:
+                log_tick(state, sent, t_ctrl - t0)
+            elif log is not None:
                 log.state(state)
                 log.command(state.t, sent)
+                if log_timing is not None:
+                    log_timing(state.t, t_ctrl - t0)
+            if log is not None:
                 for kind, detail in layer.events:
                     log.event(state.t, kind, **detail)
             control[k] = t_ctrl - t0
@@ -284,6 +296,7 @@ def run_loop(
             log.event(state.t, "comm_lost", detail=stopped[len("comm lost: "):])
         if verified is not None:
             log.event(state.t, "torque_off", verified=bool(verified))
+        log.event(state.t, "stopped", reason=stopped, ticks=ticks)
     return LoopReport(
         robot=robot.spec.name, controller=name, clock=clock, rate_hz=rate, ticks=ticks,
         sim_time_s=ticks * dt, wall_time_s=time.perf_counter() - wall0, stopped=stopped,

@@ -167,6 +167,7 @@ class MujocoBackend:
         self._site_tv: tuple[float, np.ndarray] | None = None  # (sim time, site world velocity) now
         self._sample_tv: tuple[float, np.ndarray] | None = None  # the same at the previous IMU sample
         self._stop = threading.Event()
+        self.observer = None  # called with each simulated state after it is published (the sim thread)
         for s in servos:
             s.external = True
         self._publish(self.robot.read())
@@ -276,6 +277,9 @@ class MujocoBackend:
             state = robot.read()
             with lock:
                 self._publish(state)
+            observer = self.observer
+            if observer is not None:  # e.g. the live view of `felis virtual-bus --sim --live`: this thread only
+                observer(state)
 
 
 if __name__ == "__main__":

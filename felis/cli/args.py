@@ -95,6 +95,13 @@ def bus_args(sp, robot_default: str | None = None) -> None:
     json_option(sp)
 
 
+def live_option(sp, what: str = "serve the run live to Foxglove over WebSocket") -> None:
+    """``--live [HOST:]PORT``: serve the run's log channels over the Foxglove WebSocket protocol
+    (`felis.logs.live`); 127.0.0.1 unless a host is given; nothing listens without it."""
+    sp.add_argument("--live", metavar="[HOST:]PORT",
+                    help=f"{what} (127.0.0.1 unless HOST is given; 0: any free port)")
+
+
 def json_option(sp) -> None:
     """``--json``: print the results as JSON (`felis.cli.output`) instead of text."""
     sp.add_argument("--json", action="store_true", help="print results as JSON")

@@ -5,8 +5,9 @@ the strategy selector (seed 004) under simulated pushes.
 once per episode and prints recall, false-alarm rate, median lead time and fall rate, with one entry per
 push; ``--reaction none|fixed:NAME|selector`` chooses what the cat does when the monitor warns.
 ``--backend dxl --port virtual`` runs each push through the whole hardware path (virtual Dynamixel bus
-backed by MuJoCo, wall clock). ``felis train balance`` makes the demonstrations (every push that calls
-for a reaction, tried with every strategy), fits the denoised kNN selector and an SVM beside it, and
+backed by MuJoCo, wall clock). With one push, ``--live [HOST:]PORT`` serves it to Foxglove while it runs, with the
+monitor's ``/balance`` channel (`felis.cli.live`). ``felis train balance`` makes the demonstrations (every push
+that calls for a reaction, tried with every strategy), fits the denoised kNN selector and an SVM beside it, and
 writes the selector (.npz), its demonstrations and a results JSON (`felis.learning.balance.train`).
 """
 
@@ -16,6 +17,7 @@ import sys
 from pathlib import Path
 
 from felis.cli import output
+from felis.cli.args import live_option
 from felis.drivers import ports
 from felis.errors import ParameterError
 
@@ -40,6 +42,7 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--workers", type=int, help="processes for the sim backend (default: every core)")
     e.add_argument("--out", type=Path, metavar="FILE.json", help="also write the JSON result to this file")
     e.add_argument("--json", action="store_true", help="print the result as JSON")
+    live_option(e, "one push only: serve it live to Foxglove over WebSocket, on the wall clock")
     e.set_defaults(func=cmd_eval_balance)
 
 
@@ -72,6 +75,7 @@ def _reaction(text: str) -> str:
 
 
 def cmd_eval_balance(args) -> int:
+    from felis.cli.live import check_one, live_push
     from felis.learning.balance.evaluate import run_push_virtual, run_pushes, summarise
     from felis.scenarios.push import pushes_from
 
@@ -83,10 +87,12 @@ def cmd_eval_balance(args) -> int:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
     output.check_json_out(args.out)
     quiet = args.json or not sys.stderr.isatty()
-    if args.backend == "dxl":
-        if not ports.is_virtual(args.port):
-            raise ParameterError("eval balance --backend dxl needs --port virtual: the pushes and the ground truth "
-                                 "act on the virtual bus's simulated cat")
+    if args.backend == "dxl" and not ports.is_virtual(args.port):
+        raise ParameterError("eval balance --backend dxl needs --port virtual: the pushes and the ground truth "
+                             "act on the virtual bus's simulated cat")
+    if check_one(args, len(pushes), "pushes"):
+        outcomes = [live_push(args.live, pushes[0], reaction, args.selector, args.backend)]
+    elif args.backend == "dxl":
         react = reaction
         if reaction == "selector":
             from felis.controllers.reactions import FEATURES

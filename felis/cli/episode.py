@@ -38,6 +38,7 @@ from felis.errors import ParameterError
 from felis.files import check_target
 from felis.logs.plot import plot_log
 from felis.logs.runlog import RunLog
+from felis.logs.skills import skill_channels
 from felis.loop import LoopReport, run_loop
 from felis.rotations import tilt_deg
 from felis.spec import load_spec
@@ -70,6 +71,8 @@ class Episode:
     warnings: list[str] = field(default_factory=list)  # filled by the run: connect-time advice
     servo_params: Path | None = None  # a servo parameter file (`felis sysid`) for the simulated servos
     controller_options: dict = field(default_factory=dict)  # e.g. arm-track's trajectory
+    live: str | None = None  # "[HOST:]PORT": serve the log's channels over the Foxglove WebSocket protocol
+    on_live: object | None = None  # called with the live view's ws:// address once it listens (CLI: prints it)
 
 
 @dataclass
@@ -128,6 +131,10 @@ def _check(ep: Episode) -> None:
         raise ParameterError(f"{ep.plot}: plot output must end in .png")
     if ep.log is not None and Path(ep.log).suffix.lower() != ".mcap":
         raise ParameterError(f"{ep.log}: log file must end in .mcap")
+    if ep.live is not None:
+        from felis.logs.live import parse_address
+
+        parse_address(ep.live)
     for p, what in ((ep.video, "video"), (ep.plot, "plot"), (ep.log, "run log")):
         if p is not None:
             check_target(Path(p), what, ParameterError)
@@ -161,11 +168,22 @@ def run_episode(ep: Episode) -> EpisodeResult:
         try:
             monitors = [*backend.monitors(), *([] if ep.progress is None else [ep.progress]),
                         *([] if final_tilt is None else [final_tilt])]
-            if ep.log is not None:
+            if ep.log is not None or ep.live is not None:
                 meta = {**backend.meta(), **ep.meta}
                 if info is not None:
                     meta["drop"] = _drop_meta(info)
-                log = RunLog(ep.log, spec, meta)
+                scene, poses = backend.view(getattr(controller, "markers", None))
+                live = None
+                if ep.live is not None:
+                    from felis.logs.live import LiveView
+
+                    live = stack.enter_context(LiveView(ep.live))
+                    if ep.on_live is not None:
+                        ep.on_live(live.url)
+                log = RunLog(ep.log, spec, meta, scene=scene, poses=poses, live=live)
+                skills = skill_channels(log, controller, monitors)  # /balance, /phase when they run
+                if skills is not None:
+                    monitors.append(skills)
             report = run_loop(robot, controller, duration=ep.duration, rate_hz=ep.rate_hz, clock=backend.clock,
                               log=log, monitors=monitors)
             ctl = _summary(controller)
@@ -184,8 +202,11 @@ def run_episode(ep: Episode) -> EpisodeResult:
                 summary["controller"] = ctl
             if tilt is not None and backend.logs_final_tilt:
                 summary["final_tilt_deg"] = tilt
+            if landing is not None:  # the verdict on a channel of its own, at the run's end
+                log.message("/landing", report.sim_time_s, landing.as_dict())
             log.close(summary)
-            files["log"] = str(ep.log)
+            if ep.log is not None:
+                files["log"] = str(ep.log)
         backend.finish(files)
     if ep.plot is not None and ep.log is not None:
         files["plot"] = str(plot_log(ep.log, ep.plot))
@@ -235,6 +256,12 @@ class _Sim:
         if self.info is not None:
             self.recorder = LandingRecorder(robot, tuple(spec.sensors.contacts)).attach()
         return robot
+
+    def view(self, markers) -> tuple:
+        """The log's scene and body poses: MuJoCo's (every body, the floor, a target path)."""
+        from felis.sim.scene import MujocoPoses, model_scene
+
+        return model_scene(self.robot.model, path=markers), MujocoPoses(self.robot)
 
     def monitors(self) -> list:
         ep = self.ep
@@ -312,6 +339,14 @@ class _Dxl:
                                                    calibration=calibration, imu_required=self.needs_imu))
         ep.warnings.extend(robot.warnings)
         return robot
+
+    def view(self, markers) -> tuple:
+        """The log's scene and body poses on servos: the body model from joint angles and the IMU
+        (`felis.sim.scene.hardware_view`; none for a fixed-base robot)."""
+        from felis.sim.scene import hardware_view
+
+        found = hardware_view(self.spec)
+        return (None, None) if found is None else found
 
     def monitors(self) -> list:
         return []

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from felis.cli import output
+from felis.cli.args import live_option
 from felis.errors import ParameterError
 
 DEFAULT_TRAIN_OUT = Path("runs/train-landing/landing.npz")
@@ -88,6 +89,7 @@ def register_eval(eval_sub) -> None:
                    "thread each (default: this process, every core)")
     e.add_argument("--out", type=Path, metavar="FILE.json", help="also write the JSON result to this file")
     e.add_argument("--json", action="store_true", help="print the result as JSON")
+    live_option(e, "one drop only: serve it live to Foxglove over WebSocket, on the wall clock")
     e.set_defaults(func=cmd_eval_landing)
 
 
@@ -138,21 +140,27 @@ def cmd_train_landing(args) -> int:
 
 
 def cmd_eval_landing(args) -> int:
+    from felis.cli.live import check_one, live_drop
     from felis.learning.landing.evaluate import by_tilt, check_policy, default_policy, run_drops, summarise
     from felis.scenarios.drop import drops_from
 
     drops = drops_from(args.drops, args.seed, args.height)
     args.policy = args.policy or default_policy()
     if args.policy == "optimum":
+        if args.live is not None:
+            raise ParameterError("--live needs a policy that runs in the loop; optimum searches many rollouts")
         return _eval_optimum(args, drops)
     check_policy(args.policy)
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
     output.check_json_out(args.out)
     quiet = args.json or not sys.stderr.isatty()
-    bar, step = output.progress(len(drops), "drops", quiet)
-    with bar:
-        outcomes = run_drops(drops, args.policy, workers=args.workers, progress=step)
+    if check_one(args, len(drops), "drops"):
+        outcomes = [live_drop(args.live, drops[0], args.policy)]
+    else:
+        bar, step = output.progress(len(drops), "drops", quiet)
+        with bar:
+            outcomes = run_drops(drops, args.policy, workers=args.workers, progress=step)
     summary = summarise(outcomes)
     res = {"success_rate": summary["success_rate"], "policy": args.policy, **summary,
            "by_tilt": by_tilt(drops, [o.landed for o in outcomes]),

@@ -1,5 +1,5 @@
-"""``felis log info|plot``: a run log's summary (robot, duration, messages per topic, events) and a
-one-page PNG of its joints, commands, height and tilt (`felis.logs`).
+"""``felis log info|plot|export``: a run log's summary (robot, duration, messages per topic, events), a one-page
+PNG of its joints, commands, height and tilt, and its numbers as CSV files (`felis.logs`).
 """
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from pathlib import Path
 
 from felis.cli import output
 from felis.cli.args import group
+from felis.logs.export import export_csv
 from felis.logs.plot import plot_log
 from felis.logs.runlog import log_info
 
@@ -23,6 +24,10 @@ def register(sub) -> None:
     plot.add_argument("file", type=Path)
     plot.add_argument("--out", type=Path, required=True, help="PNG file to write")
     plot.set_defaults(func=cmd_log_plot)
+    export = logsub.add_parser("export", help="write the log's joints, commands, IMU, contacts and events as CSV")
+    export.add_argument("file", type=Path)
+    export.add_argument("--csv", type=Path, required=True, metavar="DIR", help="folder for the CSV files")
+    export.set_defaults(func=cmd_log_export)
 
 
 def cmd_log_info(args) -> int:
@@ -39,4 +44,10 @@ def cmd_log_info(args) -> int:
 def cmd_log_plot(args) -> int:
     out = plot_log(args.file, args.out)
     print(f"plot: {out}")
+    return 0
+
+
+def cmd_log_export(args) -> int:
+    for path in export_csv(args.file, args.csv):
+        print(f"csv: {path}")
     return 0

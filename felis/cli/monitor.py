@@ -15,7 +15,7 @@ from rich.live import Live
 from rich.table import Table
 
 from felis.cli import output
-from felis.cli.args import bus_args, id_list, open_bus
+from felis.cli.args import bus_args, id_list, live_option, open_bus
 from felis.errors import CommError, ParameterError
 from felis.files import check_target, prepare_parent
 from felis.logs.monitorlog import MonitorExport
@@ -34,7 +34,8 @@ def register(sub) -> None:
     mo.add_argument("--rate", type=float, default=30.0, help="samples per second (default 30)")
     mo.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
     mo.add_argument("--csv", type=Path, help="export samples to CSV")
-    mo.add_argument("--mcap", type=Path, help="export samples to MCAP (topic /monitor)")
+    mo.add_argument("--mcap", type=Path, help="export samples to MCAP (/joint_states and /monitor)")
+    live_option(mo)
     mo.set_defaults(func=cmd_monitor)
 
 
@@ -98,7 +99,22 @@ def cmd_monitor(args) -> int:
     with open_bus(args) as ports:
         bus = ports.bus
         ids = _monitor_ids(args, bus)
-        sink = MonitorExport(args.csv, args.mcap, ids, robot=args.robot)
+        joints = None
+        if args.robot:
+            by_id = {j.servo_id: j.name for j in load_spec(args.robot).joints}
+            joints = [by_id.get(i, f"id{i}") for i in ids]
+        view = None
+        if args.live is not None:
+            from felis.logs.live import LiveView
+
+            view = LiveView(args.live)
+            output.live(view.url)
+        try:
+            sink = MonitorExport(args.csv, args.mcap, ids, robot=args.robot, joints=joints, live=view)
+        except BaseException:
+            if view is not None:
+                view.close()
+            raise
         period = 1.0 / args.rate
         t0 = time.perf_counter()
         n = stale = 0
@@ -129,6 +145,8 @@ def cmd_monitor(args) -> int:
             if live is not None:
                 live.stop()
             sink.close()
+            if view is not None:
+                view.close()
     elapsed = time.perf_counter() - t0
     silent = {i: k for i, k in missing.items() if k}
     summary = {"samples": n, "rate_hz": round(n / elapsed, 2) if elapsed > 0 else 0.0, "stale_readings": stale,

@@ -57,6 +57,11 @@ def error(message: str) -> None:
     print(f"error: {message}", file=sys.stderr)
 
 
+def live(url: str) -> None:
+    """One line on standard error when a live view listens (stdout stays the command's result)."""
+    print(f"live: {url} (Foxglove: Open connection → Foxglove WebSocket → {url})", file=sys.stderr, flush=True)
+
+
 # --------------------------------------------------------------------------------- progress
 def bar(*, quiet: bool, counts: bool = True, field: str | None = None, remaining: bool = True,
         transient: bool = True) -> Progress:

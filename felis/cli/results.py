@@ -14,6 +14,9 @@ from felis.shutdown import EXIT_INTERRUPTED
 
 def episode(args, **kw):
     """Run `Episode(**kw)`; a progress bar over its time unless the command prints JSON."""
+    if getattr(args, "live", None) is not None:
+        kw.setdefault("live", args.live)
+        kw.setdefault("on_live", output.live)
     ep = Episode(**kw)
     progress = None
     if not getattr(args, "json", False):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from felis.cli.args import finite
+from felis.cli.args import finite, live_option
 from felis.cli.results import episode, report
 from felis.controllers.arm_track import run_time, trajectory_from
 from felis.errors import ParameterError
@@ -51,6 +51,7 @@ def register(sub) -> None:
     run.add_argument("--selector", type=Path, metavar="FILE",
                      help="balance: a selector file for --reaction selector (default: the shipped one)")
     run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
+    live_option(run)
     run.add_argument("--rate", type=finite, help="control rate in Hz (default: the description's, 100)")
     run.add_argument("--clock", choices=["sim", "wall"], default="sim",
                      help="sim: as fast as possible; wall: real time (default sim)")

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from felis.cli.args import finite, group, json_option, size
+from felis.cli.args import finite, group, json_option, live_option, size
 from felis.cli.doctor import has_display
 from felis.cli.results import episode, report
 from felis.cli.run import drop_args
@@ -33,6 +33,7 @@ def register(sub) -> None:
     drop = simsub.add_parser("drop", help="drop the robot and report how it lands")
     scenario_args(drop, need_height=True)
     drop.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
+    live_option(drop)
     drop.add_argument("--video", type=Path, help="render to this file (.mp4, .gif, .png)")
     json_option(drop)
     drop.add_argument("--servo-params", type=Path, metavar="FILE", help="servo parameters from `felis sysid`")

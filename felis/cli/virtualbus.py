@@ -25,6 +25,10 @@ the simulation and IMU threads, and a reply must not wait the default 5 ms for i
 
 from __future__ import annotations
 
+import contextlib
+
+from felis.cli.args import live_option
+
 
 def register(sub) -> None:
     """Add ``virtual-bus`` to the ``felis`` sub-commands (``sub``: the CLI's sub-parsers action, which makes
@@ -54,6 +58,7 @@ def register(sub) -> None:
     p.add_argument("--drop", metavar="H,R,P,Y",
                    help="with --sim: hold the robot in the air, lowest point H m up, turned by roll, pitch, yaw "
                    "degrees; it falls when torque first comes on (floating base only)")
+    live_option(p)
     p.set_defaults(func=cmd_virtual_bus)
 
 
@@ -123,5 +128,44 @@ def cmd_virtual_bus(args) -> int:
                "faults": args.faults, "fixed_base": getattr(args, "fixed_base", False),
                "servo_params": getattr(args, "servo_params", None), "imu_mount": imu.get("imu_mount"),
                "imu_drift": imu.get("imu_drift"), "drop": drop}
-    return serve(bus, summary(bus, options, imu_mount_text=getattr(args, "imu_mount_deg", None),
-                              imu_drift_text=getattr(args, "imu_drift", None)))
+    line = summary(bus, options, imu_mount_text=getattr(args, "imu_mount_deg", None),
+                   imu_drift_text=getattr(args, "imu_drift", None))
+    if getattr(args, "live", None) is None:
+        return serve(bus, line)
+    with _live_view(args, bus):
+        return serve(bus, line)
+
+
+@contextlib.contextmanager
+def _live_view(args, bus):
+    """``--live``: the simulated robot (MuJoCo's truth: joints, every body, IMU, contacts) served at 100 Hz of
+    simulated time to Foxglove while the bus runs (`felis.logs.live`)."""
+    from felis.cli import output
+    from felis.errors import ParameterError
+    from felis.logs.live import LiveView
+    from felis.logs.runlog import RunLog
+    from felis.sim.scene import MujocoPoses, model_scene
+
+    backend = getattr(bus, "backend", None)
+    if not args.sim or backend is None:
+        raise ParameterError("--live shows the simulated robot: it needs --sim")
+    robot = backend.robot
+    with LiveView(args.live) as view:
+        log = RunLog(None, robot.spec, {"kind": "virtual-bus", "backend": "virtual-bus --sim"},
+                     scene=model_scene(robot.model), poses=MujocoPoses(robot), live=view)
+        next_t = [0.0]
+
+        def observe(state) -> None:
+            if state.t + 1e-9 >= next_t[0]:
+                next_t[0] = state.t + 0.01
+                log.state(state)
+
+        log.state(robot.read())  # where the robot is before anything moves (physics waits for torque)
+        log.flush()  # now, not with the next chunk: the physics may wait long
+        output.live(view.url)
+        backend.observer = observe
+        try:
+            yield
+        finally:
+            backend.observer = None
+            log.close()

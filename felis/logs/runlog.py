@@ -1,30 +1,53 @@
-"""Run logs: one control run written to an MCAP file as JSON messages, and read back.
+"""Run logs: one control run written to an MCAP file through the Foxglove SDK, with Foxglove's well-known schemas,
+and read back.
 
-Why MCAP + JSON: Foxglove opens the file as is (every topic carries a JSON Schema, encoding
-``jsonschema``, so its panels show named fields), and any MCAP tool can inspect it.
+Why this form: Foxglove, Lichtblick and Rerun open it as is and draw the robot in 3D; any MCAP tool reads it.
 
-Topics (log time = run time ``t`` in ns, ``int(t * 1e9)``):
+Channels (log time: epoch ns, ``start + t``, where start is the wall clock when the log opened and t the run time
+of the message; one time base for run, monitor and eval logs):
 
-=============  ===========================================================================
-``/meta``      once at t=0: robot, joints, groups, rate_hz, felis_version, started_utc, extras
-``/state``     every tick: t, q, dq, effort|null, height|null, imu {quat, gyro, accel}|null,
-               contacts|null, faults {hardware, comm_errors, stale|null}|null
-``/command``   what was sent: t, q, dq_max|null, torque|null
-``/events``    t, kind, detail (safety clamp, watchdog, ...)
-``/summary``   once at the end, if the caller gives one (timing, outcome)
-=============  ===========================================================================
+==================  ========================  ===================================================================
+``/meta``           JSON (felis.Meta)         once, first: robot, joints, groups, rate_hz, felis_version,
+                                              started_utc, command, and what the caller adds (backend, drop…)
+``/robot``          foxglove.SceneUpdate      once: the robot's geoms on its body frames, the floor, a target path
+``/joint_states``   foxglove.JointStates      every tick: per joint name, position (rad or m), velocity, effort
+``/joint_commands`` foxglove.JointStates      every tick: the positions actually sent
+``/tf``             foxglove.FrameTransforms  every tick: every body's pose in ``world`` (when the caller gives poses)
+``/imu``            JSON (felis.Imu)          orientation {x, y, z, w}, angular_velocity, linear_acceleration
+                                              {x, y, z}, tilt_deg
+``/contacts``       JSON (felis.Contacts)     one boolean per foot, by name
+``/base``           JSON (felis.Base)         height (m), when the backend knows it
+``/faults``         JSON (felis.Faults)       hardware (error bits per joint), comm_errors, stale; when it changes
+``/timing``         JSON (felis.Timing)       control_ms: read → write time of the tick
+``/log``            foxglove.Log              events: name = the kind (clamp, watchdog, comm_lost, …), message =
+                                              kind and its details as JSON
+``/summary``        JSON (felis.Summary)      once at the end, if the caller gives one (timing, outcome)
+==================  ========================  ===================================================================
 
-The writer, `JsonMcapWriter`, is the one MCAP writer of felis: `RunLog` adds the topics above, the servo
-monitor's export (`felis.logs.monitorlog`) its ``/monitor``.
+The skills add their own (`felis.logs.skills`): ``/balance`` (the XCoM monitor's margin, alarm, warning, ξ, CoM)
+and ``/phase`` (the gait phase its gate reads) each tick while a balance monitor runs; ``/landing`` (the verdict)
+at the end of a drop.
 
-Crash safety: the writer runs MCAP unchunked (each message is a complete record on its own) and
-flushes the file after every message, so a process killed mid-run leaves everything up to its last
-call in the operating system's hands; only ``close()`` adds the summary section and footer.
-(No ``fsync``: that would cost milliseconds per tick; a power cut may lose the page cache.)
-:func:`read_log` walks the records sequentially, stops cleanly at a cut-off record and reports
-``complete=False`` for such a file.
+Every JSON schema follows the rules of Foxglove's JSON-schema parser (one type per field, ``properties`` on
+every object, ``items`` on every array, no arrays of arrays; `schema_of` builds them from example values).
 
-JSON cannot hold NaN or infinity: such numbers are written as ``null`` and read back as NaN.
+Speed: a tick's messages are not encoded when the loop logs them: the states, commands and times are kept (and
+the body poses copied) until the chunk is finished, at most `FLUSH_S` of run time later, and then encoded all
+together, channel by channel: the Protobuf ones of all the kept ticks filled into templates in one numpy scatter
+per channel (`felis.logs.wire`), the JSON ones formatted in one call per channel. Done together they cost less than
+one tick at a time between physics steps, which evict the interpreter's working set from the CPU caches (in the
+loop of ``bench/sim_speed.py --with-log``: 15.2 against 16.6 ms of logging per 2 s cat episode). A `State` and a
+`Command` are therefore not to be changed after they are logged (the robots make new ones each tick). The live
+view gets them in the same batches: a viewer sees a run at most `FLUSH_S` late. Events (``/log``) and messages
+are written at once.
+
+Crash safety: the file is chunked (lz4) and indexed, and each chunk is finished and handed to the operating
+system at least every `FLUSH_S` of run time (at the start of the first tick after that), so a process killed
+mid-run loses at most the last `FLUSH_S` plus one tick (the kept ticks belong to the chunk that is lost anyway).
+:func:`read_log` walks the records of the intact prefix
+and reports ``complete=False`` for a cut file. (No ``fsync``: a power cut may lose the page cache.)
+
+``--live``: the same channels go to a `felis.logs.live.LiveView` (Foxglove WebSocket server), if one is given.
 """
 
 from __future__ import annotations
@@ -34,87 +57,117 @@ import io
 import json
 import math
 import struct
+import sys
+import time
 from collections import Counter
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import foxglove
 import numpy as np
+from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+from foxglove.messages import (
+    Color,
+    CubePrimitive,
+    CylinderPrimitive,
+    FrameTransforms,
+    JointStates,
+    LinePrimitive,
+    Log,
+    LogLevel,
+    Point3,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    SpherePrimitive,
+    Timestamp,
+    Vector3,
+)
 from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel, Message
+from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
-from mcap.writer import Writer
 
 from felis.errors import LogError
 from felis.files import MAX_LOG_BYTES, check_readable, prepare_parent
 from felis.hal import Command, State
+from felis.logs.wire import FrameTransformsEncoder, JointStatesEncoder, runs
+from felis.scene import BodyPoses, RobotScene
 from felis.spec import RobotSpec
 
 MAGIC = b"\x89MCAP0\r\n"
-PROFILE = "felis"
+PROFILE = ""  # Foxglove's well-known schemas in protobuf and JSON: no ROS profile
+COMPRESSION = MCAPCompression.Lz4  # per chunk; lz4 and zstd cost about the same at this chunk size
+FLUSH_S = 0.08  # a chunk is finished at least this often (run time): the most a killed process loses, plus a tick
+STATE_TOPICS = ("/joint_states", "/joint_commands", "/tf", "/imu", "/contacts", "/base", "/faults", "/timing")
+TOPICS = ("/meta", "/robot", *STATE_TOPICS, "/log", "/summary")
+OLD_TOPICS = ("/state", "/command", "/events")  # felis ≤ 0.2: JSON only
 
 # ---------------------------------------------------------------------------------------------
-# JSON schemas (Foxglove reads field names and types from these)
+# JSON schemas (Foxglove's rules: one type per field, properties on objects, items on arrays)
 
-_NUM = {"type": ["number", "null"]}
-_NUMS = {"type": "array", "items": _NUM}
-_NUMS_OR_NULL = {"type": ["array", "null"], "items": _NUM}
-_BOOLS_OR_NULL = {"type": ["array", "null"], "items": {"type": "boolean"}}
+_NUM = {"type": "number"}
+_XYZ = {"type": "object", "properties": {"x": _NUM, "y": _NUM, "z": _NUM}}
 
-SCHEMAS: dict[str, tuple[str, dict]] = {
-    "/meta": ("felis.Meta", {
-        "type": "object",
-        "properties": {
-            "robot": {"type": "string"},
-            "joints": {"type": "array", "items": {"type": "string"}},
-            "groups": {"type": "object",
-                       "additionalProperties": {"type": "array", "items": {"type": "string"}}},
-            "rate_hz": {"type": "number"},
-            "felis_version": {"type": "string"},
-            "started_utc": {"type": "string"},
-        },
-    }),
-    "/state": ("felis.State", {
-        "type": "object",
-        "properties": {
-            "t": _NUM,
-            "q": _NUMS,
-            "dq": _NUMS,
-            "effort": _NUMS_OR_NULL,
-            "height": _NUM,
-            "imu": {"type": ["object", "null"], "properties": {
-                "quat": {**_NUMS, "description": "orientation (w, x, y, z) in the world"},
-                "gyro": {**_NUMS, "description": "rad/s, IMU frame"},
-                "accel": {**_NUMS, "description": "m/s², IMU frame"},
-            }},
-            "contacts": _BOOLS_OR_NULL,
-            "faults": {"type": ["object", "null"], "properties": {
-                "hardware": {"type": "array", "items": {"type": "integer"}},
-                "comm_errors": {"type": "integer"},
-                "stale": _BOOLS_OR_NULL,
-            }},
-        },
-    }),
-    "/command": ("felis.Command", {
-        "type": "object",
-        "properties": {"t": _NUM, "q": _NUMS, "dq_max": _NUMS_OR_NULL, "torque": _BOOLS_OR_NULL},
-    }),
-    "/events": ("felis.Event", {
-        "type": "object",
-        "properties": {"t": _NUM, "kind": {"type": "string"}, "detail": {"type": "object"}},
-    }),
-    "/summary": ("felis.Summary", {"type": "object"}),
-}
-TOPICS = tuple(SCHEMAS)
+IMU_SCHEMA = {"type": "object", "title": "felis.Imu", "properties": {
+    "orientation": {"type": "object", "description": "the IMU's orientation in the world",
+                    "properties": {"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM}},
+    "angular_velocity": {**_XYZ, "description": "rad/s, IMU frame"},
+    "linear_acceleration": {**_XYZ, "description": "m/s², IMU frame"},
+    "tilt_deg": {**_NUM, "description": "angle between the body's up axis and world up"}}}
+BASE_SCHEMA = {"type": "object", "title": "felis.Base", "properties": {
+    "height": {**_NUM, "description": "height of the robot's reference site above the floor (m)"}}}
+FAULTS_SCHEMA = {"type": "object", "title": "felis.Faults", "properties": {
+    "hardware": {"type": "array", "items": {"type": "integer"}, "description": "hardware error bits per joint"},
+    "comm_errors": {"type": "integer"},
+    "stale": {"type": "array", "items": {"type": "boolean"}, "description": "joints whose reading is old"}}}
+TIMING_SCHEMA = {"type": "object", "title": "felis.Timing", "properties": {
+    "control_ms": {**_NUM, "description": "read → compute → safety → write, this tick"}}}
 
 
-# ---------------------------------------------------------------------------------------------
-# JSON helpers
+def schema_of(value: Any, title: str | None = None) -> dict:
+    """A JSON schema of ``value`` (already made JSON-able by `jsonable`) that Foxglove's parser accepts."""
+    if isinstance(value, bool):
+        out: dict = {"type": "boolean"}
+    elif isinstance(value, int):
+        out = {"type": "integer"}
+    elif isinstance(value, float) or value is None:
+        out = {"type": "number"}
+    elif isinstance(value, str):
+        out = {"type": "string"}
+    elif isinstance(value, dict):
+        out = {"type": "object", "properties": {k: schema_of(v) for k, v in value.items()}}
+    elif isinstance(value, list):
+        out = {"type": "array", "items": _merge([schema_of(v) for v in value if v is not None])}
+    else:
+        out = {"type": "string"}
+    if title is not None:
+        out["title"] = title
+    return out
+
+
+def _merge(schemas: list[dict]) -> dict:
+    """One schema for a list's items: the first item's type; objects merge their properties."""
+    if not schemas:
+        return {"type": "number"}
+    first = schemas[0]
+    if first["type"] == "number" and any(s["type"] == "integer" for s in schemas):
+        return first
+    if first["type"] == "integer" and any(s["type"] == "number" for s in schemas):
+        return {"type": "number"}
+    if first["type"] != "object":
+        return first
+    props: dict = {}
+    for s in schemas:
+        if s["type"] == "object":
+            for k, v in s["properties"].items():
+                props.setdefault(k, v)
+    return {"type": "object", "properties": props}
 
 
 def _default(obj: Any) -> Any:
-    """JSON fallback for numpy values, dataclasses, paths and anything else (as text)."""
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, np.generic):
@@ -122,104 +175,211 @@ def _default(obj: Any) -> Any:
     if isinstance(obj, (set, frozenset, tuple)):
         return list(obj)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}  # encoder recurses
+        return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
     return str(obj)
 
 
-def _finite(obj: Any) -> Any:
-    """Copy of ``obj`` (already made of plain Python values) with NaN/inf floats as None."""
+def jsonable(obj: Any) -> Any:
+    """``obj`` as plain JSON values that fit one schema: numpy → Python, NaN/inf → None, keys → str; None values
+    in objects are left out (Foxglove has no null type); an array of arrays becomes an array of objects
+    ``{"items": […]}`` (Foxglove's parser takes no nested arrays)."""
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
+    if isinstance(obj, (bool, int, str)) or obj is None:
+        return obj
     if isinstance(obj, dict):
-        return {str(k): _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
+        out = {str(k): jsonable(v) for k, v in obj.items()}
+        return {k: v for k, v in out.items() if v is not None}
+    if isinstance(obj, (list, tuple, set, frozenset, np.ndarray)):
+        items = [jsonable(v) for v in (obj.tolist() if isinstance(obj, np.ndarray) else obj)]
+        if any(isinstance(v, list) for v in items):
+            items = [{"items": v} if isinstance(v, list) else v for v in items]
+        return items
     if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return _finite(_default(obj))
-    return obj
+        return jsonable(obj.item())
+    return jsonable(_default(obj))
 
 
-def _floats(a: Any) -> list:
-    return np.asarray(a, dtype=float).tolist()
-
-
-def _bools(a: Any) -> list | None:
-    return None if a is None else np.asarray(a, dtype=bool).tolist()
-
-
-def _ns(t: float) -> int:
-    """Log time in ns; non-finite or negative times map to 0 (MCAP times are unsigned)."""
-    return int(t * 1e9) if math.isfinite(t) and t > 0 else 0
+def _text(msg: Any) -> bytes:
+    return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode()
 
 
 # ---------------------------------------------------------------------------------------------
 # writing
 
 
-class JsonMcapWriter:
-    """An MCAP file of JSON messages on fixed topics, each with its JSON Schema: the one MCAP writer of felis
-    (run logs, `RunLog`; the servo monitor's export, `felis.logs.monitorlog`).
+def _remove_old(path: Path) -> None:
+    """Unlink an old log at ``path`` before a new one is written there: the file system frees an unlinked file
+    about fifty times faster than it truncates one on open (ext4: 0.05 ms against 2.4 ms for a 2 s cat log,
+    ``bench/sim_speed.py`` writes one per episode). A symbolic link is left alone (written through, as
+    before); a file that cannot be removed is left for the open to report."""
+    try:
+        if path.is_file() and not path.is_symlink():
+            path.unlink()
+    except OSError:
+        pass
 
-    Written unchunked and flushed after every message (one whole record each), so a killed process loses
-    nothing written before it died; ``close()`` adds the summary section and footer. ``topics`` maps each
-    topic to (schema name, JSON Schema); ``meta`` is the ``/meta`` message written first at t=0 (when
-    ``/meta`` is one of the topics). Errors are ``error(f"cannot write {what} {path}: …")``.
+
+def _stamp(ns: int) -> Timestamp:
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return Timestamp(sec=sec, nsec=nsec)
+
+
+class McapLog:
+    """The one MCAP writer of felis: channels in a Foxglove SDK context, written to ``path`` (chunked, indexed,
+    flushed every `FLUSH_S` of log time) and, when ``live`` is given, served by that `LiveView` too.
+
+    ``path`` may be None (a live view only). ``meta`` is the ``/meta`` message (JSON, its schema from its
+    values) written first at log time ``start_ns``. Errors: ``error(f"cannot write {what} {path}: …")``.
     """
 
-    def __init__(self, path: str | Path, topics: dict[str, tuple[str, dict]], meta: dict | None = None, *,
-                 what: str = "run log", error: type[Exception] = LogError):
-        import felis  # late: felis/__init__ may one day import this module
-
-        self.path = Path(path)
+    def __init__(self, path: str | Path | None, meta: dict, *, what: str = "run log",
+                 error: type[Exception] = LogError, live=None):
+        self.path = None if path is None else Path(path)
         self._what, self._error = what, error
         self._closed = False
-        self._last_ns = 0
-        self._encoder = json.JSONEncoder(allow_nan=False, separators=(",", ":"), default=_default)
-        prepare_parent(self.path, what, error)
-        try:
-            self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        except OSError as e:
-            raise error(f"cannot write {what} {self.path}: {e.strerror or e}") from None
-        try:
-            self._writer = Writer(self._file, use_chunking=False, use_summary_offsets=True)
-            self._writer.start(profile=PROFILE, library=f"felis-{felis.__version__}")
-            self._channels = {}
-            for topic, (name, schema) in topics.items():
-                sid = self._writer.register_schema(name=name, encoding="jsonschema",
-                                                   data=json.dumps(schema).encode())
-                self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
-                                                                      schema_id=sid)
-            if meta is not None:
-                self._put("/meta", 0, meta)
-        except (OSError, error) as e:
-            self._file.close()
-            self._closed = True
-            if isinstance(e, error):
-                raise
-            raise error(f"cannot write {what} {self.path}: {e.strerror or e}") from None
+        self.start_ns = time.time_ns()
+        self._last_ns = self.start_ns
+        self._flushed_ns = self.start_ns
+        self._contexts = []
+        self._writer = None
+        self.live = live
+        self._pending: list[tuple] = []  # deferred writes (`defer`)
+        if self.path is not None:
+            prepare_parent(self.path, what, error)
+            _remove_old(self.path)
+            ctx = foxglove.Context()
+            options = MCAPWriteOptions(compression=COMPRESSION, chunk_size=None, profile=PROFILE,
+                                       compression_level=1, compression_threads=0)
+            try:
+                self._writer = foxglove.open_mcap(self.path, allow_overwrite=True, context=ctx,
+                                                  writer_options=options)
+            except (OSError, RuntimeError, ValueError) as e:
+                raise error(f"cannot write {what} {self.path}: {getattr(e, 'strerror', None) or e}") from None
+            self._contexts.append(ctx)
+        if live is not None:
+            self._contexts.append(live.context)
+        self._outs: dict[str, tuple] = {}
+        self.meta = jsonable(meta)
+        self.latched("/meta", schema_of(self.meta, "felis.Meta"), _text(self.meta), self.start_ns)
+        self.flush()
 
-    def message(self, topic: str, t: float, msg: dict) -> None:
-        """Write ``msg`` on ``topic`` at run time ``t`` (s; log time ``int(t * 1e9)`` ns)."""
-        self._put(topic, _ns(t), msg)
+    # -- channels -------------------------------------------------------------------------------
+
+    def channel(self, topic: str, schema: dict | foxglove.Schema, encoding: str = "json"):
+        """A function ``put(ns, data: bytes)`` that logs on ``topic`` to the file and the live view."""
+        if isinstance(schema, dict):
+            chans = [foxglove.Channel(topic, schema=schema, context=c) for c in self._contexts]
+        else:
+            chans = [foxglove.Channel(topic, schema=schema, message_encoding=encoding, context=c)
+                     for c in self._contexts]
+        logs = tuple(c.base.log for c in chans)
+        if self.live is None:
+            one = logs[0]
+
+            def put(ns: int, data: bytes) -> None:
+                one(data, ns)
+        else:
+            self.live.register(topic, chans[-1])
+            watched = self.live.watchers(topic)
+            live_log = logs[-1]
+            file_log = logs[0] if len(logs) > 1 else None
+
+            def put(ns: int, data: bytes) -> None:
+                if file_log is not None:
+                    file_log(data, ns)
+                if watched[0]:
+                    live_log(data, ns)
+        self._outs[topic] = (chans, put)
+        return put
+
+    def latched(self, topic: str, schema, data: bytes, ns: int, encoding: str = "json") -> None:
+        """Log one message that a viewer needs whenever it connects (meta, scene): written once to the file
+        and sent again to each live client that subscribes."""
+        put = self.channel(topic, schema, encoding)
+        self._check_open()
+        put(ns, data)
+        self._last_ns = max(self._last_ns, ns)
+        if self.live is not None:
+            self.live.latch(topic, data, ns)
+
+    # -- deferred writing -------------------------------------------------------------------------
+
+    def defer(self, fn, *args) -> None:
+        """Run ``fn(*args)`` (an encode and write) at the next chunk boundary, with the other deferred ones in
+        order: at most `FLUSH_S` of run time later, the time after which the chunk would be handed to the
+        operating system anyway, so a crash loses no more than before. Why: writes done together cost less than one
+        at a time between physics steps (module doc, "Speed")."""
+        self._pending.append((fn, args))
+
+    def _write_pending(self) -> None:
+        pending = self._pending
+        if pending:
+            self._pending = []
+            for fn, args in pending:
+                fn(*args)
+
+    def message(self, topic: str, t: float, msg: dict, schema: dict | None = None) -> None:
+        """Write the JSON ``msg`` on ``topic`` at run time ``t`` (s); the channel is made on first use with
+        ``schema`` (default: from ``msg``)."""
+        self._check_open()
+        self._message(topic, t, jsonable(msg), schema)
+
+    def _message(self, topic: str, t: float, msg, schema) -> None:
+        out = self._outs.get(topic)
+        put = out[1] if out else self.channel(topic, schema or schema_of(msg, f"felis.{topic.strip('/').title()}"))
+        ns = self.ns(t)
+        self._tick(ns)
+        put(ns, _text(msg))
+
+    def ns(self, t: float) -> int:
+        """Log time (epoch ns) of run time ``t`` (s); non-finite or negative times map to the start."""
+        return self.start_ns + (int(round(t * 1e9)) if math.isfinite(t) and t > 0 else 0)
+
+    def _tick(self, ns: int) -> None:
+        if ns > self._last_ns:
+            self._last_ns = ns
+        if ns - self._flushed_ns >= FLUSH_NS:
+            self.flush()
+            self._flushed_ns = ns
+
+    def flush(self) -> None:
+        """Write what is deferred, finish the current chunk and hand it to the operating system."""
+        self._write_pending()
+        if self._writer is not None:
+            try:
+                self._writer.flush()
+            except (OSError, RuntimeError) as e:
+                raise self._error(f"cannot write {self._what} {self.path}: {e}") from None
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise self._error(f"{self._what} {self.path} is closed; cannot log")
 
     def close(self, summary: dict | None = None) -> None:
         """Write ``/summary`` (if given) and finish the file (summary section, footer). Idempotent."""
         if self._closed:
             return
         try:
+            self._write_pending()
             if summary is not None:
-                self._put("/summary", self._last_ns, summary)
-            self._writer.finish()
-            self._file.flush()
-        except OSError as e:
-            raise self._error(f"cannot finish {self._what} {self.path}: {e.strerror or e}") from None
+                s = jsonable(summary)
+                put = self.channel("/summary", schema_of(s, "felis.Summary"))
+                put(self._last_ns, _text(s))
+            if self._writer is not None:
+                self._writer.close()
+        except (OSError, RuntimeError) as e:
+            raise self._error(f"cannot finish {self._what} {self.path}: {e}") from None
         finally:
             self._closed = True
-            self._file.close()
+            registry = getattr(getattr(foxglove, "channel", None), "_channels_by_id", None)
+            for chans, _ in self._outs.values():
+                for c in chans:
+                    c.close()
+                    if isinstance(registry, dict):  # the SDK keeps every channel it made: let ours go
+                        registry.pop(c.id(), None)
+            if self.live is not None:
+                self.live.unlatch()
 
     @property
     def closed(self) -> bool:
@@ -231,37 +391,52 @@ class JsonMcapWriter:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _put(self, topic: str, log_ns: int, msg: dict) -> None:
-        if self._closed:
-            raise self._error(f"{self._what} {self.path} is closed; cannot log {topic}")
-        try:
-            text = self._encoder.encode(msg)
-        except (ValueError, TypeError):  # NaN/inf (JSON has none: write null) or non-str keys
-            text = self._encoder.encode(_finite(msg))
-        self._last_ns = max(self._last_ns, log_ns)
-        try:
-            self._writer.add_message(self._channels[topic], log_time=log_ns, data=text.encode(),
-                                     publish_time=log_ns)
-            self._file.flush()
-        except OSError as e:
-            raise self._error(f"cannot write {self._what} {self.path}: {e.strerror or e}") from None
+
+FLUSH_NS = int(FLUSH_S * 1e9)
+_LEVEL = {"watchdog": LogLevel.Error, "comm_lost": LogLevel.Error, "hardware_error": LogLevel.Error,
+          "torque_lost": LogLevel.Error, "bus_watchdog": LogLevel.Error, "imu_lost": LogLevel.Warning,
+          "read_failed": LogLevel.Warning, "interrupted": LogLevel.Warning, "clamp": LogLevel.Info,
+          "nonfinite": LogLevel.Warning}
 
 
-class RunLog(JsonMcapWriter):
-    """Writes one run to an MCAP file, JSON messages, incrementally (unchunked records, flushed each tick).
+_SEP = "\x1e"  # never in a formatted message (numbers, true/false, fixed keys)
+# The per-tick JSON channels write rates, accelerations, tilt and times with 9 significant digits ("%.9g": a third
+# of the time of Python's shortest round-trip repr, and finer than any sensor's resolution); what `read_log` reads
+# back (the IMU's orientation, the height) is written exactly, as are the Protobuf channels' doubles.
 
-    Every call writes one whole MCAP record and flushes the file, so a killed process loses nothing
-    that was logged before it died. Cost: about 40 µs for a full 12-joint state, mostly float→text.
+
+def _formatted(fmt: str, rows: list) -> list[bytes]:
+    """``fmt % row`` for every row, encoded, in one formatting call (a batch of ticks' JSON messages)."""
+    if len(rows) == 1:
+        return [(fmt % tuple(rows[0])).encode()]
+    flat = [v for row in rows for v in row]
+    return (_SEP.join([fmt] * len(rows)) % tuple(flat)).encode().split(_SEP.encode())
+
+
+def _imu_template() -> str:
+    return ('{"orientation":{"x":%r,"y":%r,"z":%r,"w":%r},"angular_velocity":{"x":%.9g,"y":%.9g,'
+            '"z":%.9g},"linear_acceleration":{"x":%.9g,"y":%.9g,"z":%.9g},"tilt_deg":%.9g}')
+
+
+class RunLog(McapLog):
+    """Writes one run: joint states and commands, body transforms, IMU, contacts, events (module doc).
+
+    ``scene`` (`felis.scene.RobotScene`) is written once on ``/robot``; ``poses`` (`felis.scene.BodyPoses`) gives
+    ``/tf`` each tick; ``live`` (`felis.logs.live.LiveView`) serves the same channels; ``path`` None: live only.
 
     >>> with RunLog("runs/drop.mcap", spec) as log:      # doctest: +SKIP
     ...     log.state(state); log.command(state.t, sent); log.event(t, "clamp", joints=["tail_yaw"])
     ...     log.close({"overruns": 0})
     """
 
-    def __init__(self, path: str | Path, spec: RobotSpec, meta: dict | None = None):
+    def __init__(self, path: str | Path | None, spec: RobotSpec, meta: dict | None = None, *,
+                 scene: RobotScene | None = None, poses: BodyPoses | None = None, live=None):
         import felis  # late: felis/__init__ may one day import this module
 
         self.spec = spec
+        self._ticks: list[tuple] = []  # deferred (ns, state, poses), (ns, q sent), (ns, control s)
+        self._cmds: list[tuple] = []
+        self._times: list[tuple] = []
         header = {
             "robot": spec.name,
             "joints": list(spec.names),
@@ -269,49 +444,261 @@ class RunLog(JsonMcapWriter):
             "rate_hz": float(spec.rate_hz),
             "felis_version": felis.__version__,
             "started_utc": datetime.now(UTC).isoformat(timespec="milliseconds"),
+            "command": " ".join(["felis", *sys.argv[1:]]) if Path(sys.argv[0]).name == "felis" else " ".join(sys.argv),
             **(meta or {}),
         }
-        super().__init__(path, SCHEMAS, header)
+        super().__init__(path, header, live=live)
+        names = list(spec.names)
+        self._js_full = JointStatesEncoder(names, ("position", "velocity", "effort"))
+        self._js_noeff = JointStatesEncoder(names, ("position", "velocity"))
+        self._jc = JointStatesEncoder(names, ("position",))
+        js_schema = JointStates.get_schema()
+        self._put_js = self.channel("/joint_states", js_schema, "protobuf")
+        self._put_jc = self.channel("/joint_commands", js_schema, "protobuf")
+        self._put_imu = self._put_contacts = self._put_base = self._put_faults = self._put_timing = None
+        self._put_log = self.channel("/log", Log.get_schema(), "protobuf")
+        self._imu_fmt = _imu_template()
+        feet = [str(f) for f in spec.sensors.contacts]
+        self._feet = feet
+        self._contacts_fmt = "{" + ",".join(f'"{f}":%s' for f in feet) + "}"
+        self._last_faults: tuple | None = None
+        self._faults_seen = None
+        self._poses = poses
+        self._tf = self._put_tf = None
+        if poses is not None:
+            self._tf = FrameTransformsEncoder(poses.bodies)
+            self._put_tf = self.channel("/tf", FrameTransforms.get_schema(), "protobuf")
+        if scene is not None:
+            self.latched("/robot", SceneUpdate.get_schema(), scene_update(scene, self.start_ns).encode(),
+                         self.start_ns, "protobuf")
+        self.flush()
 
     # -- per tick -------------------------------------------------------------------------------
 
     def state(self, state: State) -> None:
-        """Log one `State` on ``/state``."""
-        imu = state.imu
-        faults = state.faults
-        msg = {
-            "t": float(state.t),
-            "q": _floats(state.q),
-            "dq": _floats(state.dq),
-            "effort": None if state.effort is None else _floats(state.effort),
-            "height": None if state.height is None else float(state.height),
-            "imu": None if imu is None else {
-                "quat": _floats(imu.quat), "gyro": _floats(imu.gyro), "accel": _floats(imu.accel)},
-            "contacts": _bools(state.contacts),
-            "faults": None if faults is None else {
-                "hardware": np.asarray(faults.hardware, dtype=np.int64).tolist(),
-                "comm_errors": int(faults.comm_errors),
-                "stale": _bools(faults.stale),
-            },
-        }
-        self._put("/state", _ns(state.t), msg)
+        """Log one `State`: ``/joint_states``, ``/tf``, and ``/imu``, ``/contacts``, ``/base``, ``/faults``
+        where the state has them. The body poses are taken now (they may read a simulation that moves on); the
+        messages are encoded at the next chunk boundary (`McapLog.defer`): a `State` is not changed after it
+        is read."""
+        self._check_open()
+        ns = self.ns(state.t)
+        self._tick(ns)
+        v = None
+        if self._poses is not None:
+            v = self._poses(state)
+            if v is not None:
+                v = v.copy()
+        self._ticks.append((ns, state, v))
+
+    def _write_pending(self) -> None:
+        """The deferred ticks, channel by channel: the Protobuf ones of all the ticks in one scatter each
+        (`felis.logs.wire`), then the JSON ones tick by tick, then the other deferred writes."""
+        ticks, cmds, times = self._ticks, self._cmds, self._times
+        if ticks:
+            self._ticks = []
+            ns = [x[0] for x in ticks]
+            states = [x[1] for x in ticks]
+            stamps = runs(ns)  # the timestamps' bytes, once for every channel
+            put = self._put_js
+            if all(s.effort is not None for s in states):
+                msgs = self._js_full.encode_many(ns, np.array([(s.q, s.dq, s.effort) for s in states]), stamps)
+            elif all(s.effort is None for s in states):
+                msgs = self._js_noeff.encode_many(ns, np.array([(s.q, s.dq) for s in states]), stamps)
+            else:
+                msgs = [self._js_noeff.encode(n, (s.q, s.dq)) if s.effort is None else
+                        self._js_full.encode(n, (s.q, s.dq, s.effort)) for n, s in zip(ns, states, strict=True)]
+            for n, m in zip(ns, msgs, strict=True):
+                put(n, m)
+            if self._put_tf is not None:
+                posed = [(n, v) for n, _, v in ticks if v is not None]
+                if posed:
+                    put = self._put_tf
+                    at = [n for n, _ in posed]
+                    msgs = self._tf.encode_many(at, np.array([v for _, v in posed]),
+                                                stamps if len(at) == len(ns) else None)
+                    for n, m in zip(at, msgs, strict=True):
+                        put(n, m)
+            self._state_json(ns, states)
+        if cmds:
+            self._cmds = []
+            at = [n for n, _ in cmds]
+            put = self._put_jc
+            same = ticks and at == ns  # commands logged with their states (the loop): their timestamps are made
+            msgs = self._jc.encode_many(at, np.array([q for _, q in cmds])[:, None, :], stamps if same else None)
+            for n, m in zip(at, msgs, strict=True):
+                put(n, m)
+        if times:
+            self._times = []
+            if self._put_timing is None:
+                self._put_timing = self.channel("/timing", TIMING_SCHEMA)
+            put = self._put_timing
+            for (n, _), text in zip(times, _formatted('{"control_ms":%.9g}', [(c * 1e3,) for _, c in times]),
+                                    strict=True):
+                put(n, text)
+        super()._write_pending()
+
+    def _state_json(self, ns: list[int], states: list[State]) -> None:
+        """``/imu``, ``/contacts``, ``/base``, ``/faults`` of deferred states (where each state has them): each
+        channel's messages formatted in one go (`_formatted`)."""
+        imus, rows = [], []
+        for n, s in zip(ns, states, strict=True):  # plain floats: faster than numpy for a few values
+            imu = s.imu
+            if imu is not None:
+                w, x, y, z = imu.quat.tolist()
+                c = 1.0 - 2.0 * (x * x + y * y)
+                row = [x, y, z, w, *imu.gyro.tolist(), *imu.accel.tolist(),
+                       math.degrees(math.acos(max(-1.0, min(1.0, c)))) if c == c else math.nan]
+                imus.append(n)
+                rows.append(row)
+        if imus:
+            total = sum(sum(r) for r in rows)
+            if total - total == 0:  # all finite
+                texts = _formatted(self._imu_fmt, rows)
+            else:  # a quiet or broken reading: its finite values only
+                texts = [(self._imu_fmt % tuple(r)).encode() if math.isfinite(sum(r)) else _text(jsonable({
+                    "orientation": dict(zip("xyzw", r[:4], strict=True)),
+                    "angular_velocity": dict(zip("xyz", r[4:7], strict=True)),
+                    "linear_acceleration": dict(zip("xyz", r[7:10], strict=True)), "tilt_deg": r[10]}))
+                    for r in rows]
+            if self._put_imu is None:
+                self._put_imu = self.channel("/imu", IMU_SCHEMA)
+            put = self._put_imu
+            for n, text in zip(imus, texts, strict=True):
+                put(n, text)
+        nf = len(self._feet)
+        cs = [(n, s.contacts) for n, s in zip(ns, states, strict=True)
+              if s.contacts is not None and len(s.contacts) == nf]
+        if cs and nf:
+            if self._put_contacts is None:
+                self._put_contacts = self.channel("/contacts", {
+                    "type": "object", "title": "felis.Contacts",
+                    "properties": {f: {"type": "boolean", "description": "foot touches the ground"}
+                                   for f in self._feet}})
+            put = self._put_contacts
+            rows = [["true" if b else "false" for b in c.tolist()] for _, c in cs]
+            for (n, _), text in zip(cs, _formatted(self._contacts_fmt, rows), strict=True):
+                put(n, text)
+        hs = [(n, float(s.height)) for n, s in zip(ns, states, strict=True) if s.height is not None]
+        if hs:
+            if self._put_base is None:
+                self._put_base = self.channel("/base", BASE_SCHEMA)
+            put = self._put_base
+            texts = (_formatted('{"height":%r}', [(h,) for _, h in hs]) if all(math.isfinite(h) for _, h in hs)
+                     else [f'{{"height":{h!r}}}'.encode() if math.isfinite(h) else b"{}" for _, h in hs])
+            for (n, _), text in zip(hs, texts, strict=True):
+                put(n, text)
+        for n, s in zip(ns, states, strict=True):
+            f = s.faults
+            if f is not None and f is not self._faults_seen:  # the same object: unchanged (the simulation's)
+                self._faults_seen = f
+                self._faults(n, f)
+
+    def _faults(self, ns: int, f) -> None:
+        hw, stale = np.asarray(f.hardware), f.stale
+        key = (hw.tobytes(), f.comm_errors, None if stale is None else np.asarray(stale).tobytes())
+        if key != self._last_faults:
+            self._last_faults = key
+            text = _text({"hardware": [int(v) for v in hw.tolist()], "comm_errors": int(f.comm_errors),
+                          **({} if stale is None else {"stale": np.asarray(stale, dtype=bool).tolist()})})
+            if self._put_faults is None:
+                self._put_faults = self.channel("/faults", FAULTS_SCHEMA)
+            self._put_faults(ns, text)
+
+    def tick(self, state: State, command: Command, control_s: float) -> None:
+        """One loop tick in one call (what `felis.loop.run_loop` uses): `state`, `command` at the state's time,
+        `timing`."""
+        self._check_open()
+        ns = self.ns(state.t)
+        self._tick(ns)
+        v = None
+        if self._poses is not None:
+            v = self._poses(state)
+            if v is not None:
+                v = v.copy()
+        self._ticks.append((ns, state, v))
+        self._cmds.append((ns, command.q))
+        self._times.append((ns, control_s))
 
     def command(self, t: float, command: Command) -> None:
-        """Log the command actually sent at time ``t`` on ``/command``."""
-        msg = {
-            "t": float(t),
-            "q": _floats(command.q),
-            "dq_max": None if command.dq_max is None else _floats(command.dq_max),
-            "torque": _bools(command.torque),
-        }
-        self._put("/command", _ns(t), msg)
+        """Log the command actually sent at time ``t`` on ``/joint_commands``."""
+        self._check_open()
+        self._cmds.append((self.ns(t), command.q))
+
+    def timing(self, t: float, control_s: float) -> None:
+        """Log the tick's control-path time on ``/timing``."""
+        self._times.append((self.ns(t), control_s))
 
     def event(self, t: float, kind: str, **detail) -> None:
-        """Log a discrete event (safety clamp, watchdog trip, mode change, ...) on ``/events``."""
-        self._put("/events", _ns(t), {"t": float(t), "kind": str(kind), "detail": detail})
+        """Log a discrete event (safety clamp, watchdog trip, comm lost, …) on ``/log`` (foxglove.Log)."""
+        self._check_open()
+        self._event(t, kind, jsonable(detail))
+
+    def _event(self, t: float, kind: str, detail: dict) -> None:
+        ns = self.ns(t)
+        self._tick(ns)
+        d = detail
+        text = str(kind) + (" " + json.dumps(d, separators=(",", ":"), ensure_ascii=False) if d else "")
+        msg = Log(timestamp=_stamp(ns), level=_LEVEL.get(str(kind), LogLevel.Info), message=text, name=str(kind))
+        self._put_log(ns, msg.encode())
 
     def __enter__(self) -> RunLog:
         return self
+
+
+def scene_update(scene: RobotScene, ns: int) -> SceneUpdate:
+    """The robot's geoms as a ``foxglove.SceneUpdate``: one entity per body (frame-locked to the body's frame),
+    one for the world's geoms (the floor) and the path (orange line), in frame ``world``."""
+    stamp = _stamp(ns)
+    per: dict[int, dict[str, list]] = {}
+    for g in scene.geoms:
+        prims = per.setdefault(g.body, {"cubes": [], "spheres": [], "cylinders": []})
+        w, x, y, z = g.quat
+        rot = Quaternion(x=x, y=y, z=z, w=w)
+        pose = Pose(position=Vector3(x=g.pos[0], y=g.pos[1], z=g.pos[2]), orientation=rot)
+        color = Color(r=g.rgba[0], g=g.rgba[1], b=g.rgba[2], a=g.rgba[3])
+        sx, sy, sz = g.size
+        if g.shape == "box":
+            prims["cubes"].append(CubePrimitive(pose=pose, size=Vector3(x=2 * sx, y=2 * sy, z=2 * sz), color=color))
+        elif g.shape == "plane":
+            hx, hy = (sx or 10.0), (sy or 10.0)
+            p = Pose(position=Vector3(x=g.pos[0], y=g.pos[1], z=g.pos[2] - 0.0005), orientation=rot)
+            prims["cubes"].append(CubePrimitive(pose=p, size=Vector3(x=2 * hx, y=2 * hy, z=0.001), color=color))
+        elif g.shape == "sphere":
+            prims["spheres"].append(SpherePrimitive(pose=pose, size=Vector3(x=2 * sx, y=2 * sx, z=2 * sx),
+                                                    color=color))
+        elif g.shape == "ellipsoid":
+            prims["spheres"].append(SpherePrimitive(pose=pose, size=Vector3(x=2 * sx, y=2 * sy, z=2 * sz),
+                                                    color=color))
+        elif g.shape in ("cylinder", "capsule"):
+            prims["cylinders"].append(CylinderPrimitive(pose=pose, size=Vector3(x=2 * sx, y=2 * sx, z=2 * sy),
+                                                        bottom_scale=1.0, top_scale=1.0, color=color))
+            if g.shape == "capsule":  # the two caps: spheres at ±half length along the geom's z
+                axis = _rotate((w, x, y, z), (0.0, 0.0, sy))
+                for sign in (1.0, -1.0):
+                    c = Pose(position=Vector3(x=g.pos[0] + sign * axis[0], y=g.pos[1] + sign * axis[1],
+                                              z=g.pos[2] + sign * axis[2]), orientation=rot)
+                    prims["spheres"].append(SpherePrimitive(pose=c, size=Vector3(x=2 * sx, y=2 * sx, z=2 * sx),
+                                                            color=color))
+    entities = []
+    for b, prims in per.items():
+        frame = "world" if b < 0 else scene.bodies[b]
+        entities.append(SceneEntity(timestamp=stamp, frame_id=frame, id=f"geoms/{frame}", frame_locked=b >= 0,
+                                    **prims))
+    if scene.path is not None and len(scene.path) > 1:
+        pts = [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in scene.path]
+        line = LinePrimitive(pose=Pose(position=Vector3(), orientation=Quaternion(w=1.0)), thickness=0.004,
+                             points=pts, color=Color(r=1.0, g=0.55, b=0.1, a=0.9))
+        entities.append(SceneEntity(timestamp=stamp, frame_id="world", id="target_path", lines=[line]))
+    return SceneUpdate(entities=entities)
+
+
+def _rotate(q, v):
+    w, x, y, z = q
+    vx, vy, vz = v
+    # v' = v + 2w (u × v) + 2 u × (u × v), u = (x, y, z)
+    cx, cy, cz = y * vz - z * vy, z * vx - x * vz, x * vy - y * vx
+    dx, dy, dz = y * cz - z * cy, z * cx - x * cz, x * cy - y * cx
+    return vx + 2 * (w * cx + dx), vy + 2 * (w * cy + dy), vz + 2 * (w * cz + dz)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -320,7 +707,8 @@ class RunLog(JsonMcapWriter):
 
 @dataclass
 class LogData:
-    """A run log read back; arrays in the joint order of ``joints``, NaN where a value was null."""
+    """A run log read back; arrays in the joint order of ``joints``, NaN where a value was missing. Times are run
+    times (s since the log's start, the ``/meta`` message)."""
 
     path: Path
     meta: dict
@@ -329,7 +717,7 @@ class LogData:
     q: np.ndarray  # (N, n)
     dq: np.ndarray  # (N, n)
     effort: np.ndarray | None  # (N, n); None when no state carried effort
-    height: np.ndarray | None  # (N,) NaN where null; None when no state carried a height
+    height: np.ndarray | None  # (N,) NaN where missing; None when no state carried a height
     quat: np.ndarray | None  # (N, 4) IMU quaternions (w, x, y, z); None without an IMU
     cmd_t: np.ndarray  # (M,) command times
     cmd_q: np.ndarray  # (M, n) commands sent
@@ -337,6 +725,9 @@ class LogData:
     summary: dict | None
     complete: bool  # False when the file was cut off (crash: no summary section / footer)
     counts: dict[str, int]  # messages per topic
+    contacts: np.ndarray | None = None  # (N, feet) bool; None without foot contacts
+    feet: list[str] = dataclasses.field(default_factory=list)
+    start_ns: int = 0  # log time of run time 0 (epoch ns)
 
     @property
     def robot(self) -> str:
@@ -384,98 +775,168 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def _records(path: Path) -> tuple[list, bool]:
-    """The MCAP records of the file's intact prefix, and whether the file ended properly."""
+    """The MCAP records of the file's intact prefix (chunks opened), and whether the file ended properly."""
     data = _read_bytes(path)
     end, complete = _complete_prefix(data, len(data))
     stream = io.BytesIO(data if end == len(data) else data[:end])
-    stream.seek(len(MAGIC))  # checked in _read_bytes
-    # skip_magic: no trailing magic expected either (a cut-off file has none; _complete_prefix
-    # already checked it on a finished one and left it inside `end`, where the reader reads it)
+    stream.seek(len(MAGIC))
     out = []
     try:
         for rec in StreamReader(stream, skip_magic=True, validate_crcs=False).records:
             out.append(rec)
     except EndOfFile:
         pass  # the normal end of the intact prefix of a cut-off file
-    except (McapError, struct.error, UnicodeDecodeError, ValueError):
+    except (McapError, struct.error, UnicodeDecodeError, ValueError, RuntimeError):
         complete = False  # garbage inside whole records: keep what was read before it
     return out, complete
 
 
-def _rows(rows: list, n: int, what: str, path: Path) -> np.ndarray:
-    """(N, n) float array from lists with None (→ NaN); a row of the wrong length is an error."""
-    for i, r in enumerate(rows):
-        if len(r) != n:
-            raise LogError(f"{path}: {what} message {i} has {len(r)} values, the log has {n} joints")
-    return np.array(rows, dtype=float).reshape(len(rows), n)
+_CLASSES: dict[tuple[str, bytes], type] = {}
+
+
+def protobuf_class(name: str, data: bytes) -> type:
+    """The protobuf message class of schema ``name`` from its FileDescriptorSet (cached)."""
+    key = (name, data)
+    cls = _CLASSES.get(key)
+    if cls is None:
+        from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+        pool = descriptor_pool.DescriptorPool()
+        for f in descriptor_pb2.FileDescriptorSet.FromString(data).file:
+            pool.Add(f)
+        cls = _CLASSES[key] = message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+    return cls
+
+
+def _joint_rows(msgs: list, joints: list[str], path: Path, topic: str):
+    """(N, n) position, velocity, effort from JointStates messages (joints matched by name; NaN if absent)."""
+    n, index = len(joints), {j: i for i, j in enumerate(joints)}
+    out = np.full((3, len(msgs), n), np.nan)
+    has_effort = False
+    for k, m in enumerate(msgs):
+        for js in m.joints:
+            i = index.get(js.name)
+            if i is None:
+                raise LogError(f"{path}: {topic} message {k} names joint {js.name!r}, not one of the log's joints")
+            if js.HasField("position"):
+                out[0, k, i] = js.position
+            if js.HasField("velocity"):
+                out[1, k, i] = js.velocity
+            if js.HasField("effort"):
+                out[2, k, i] = js.effort
+                has_effort = True
+    return out[0], out[1], (out[2] if has_effort else None)
 
 
 def read_log(path: str | Path) -> LogData:
     """Read a felis run log, complete or cut off by a crash.
 
-    Raises LogError for a missing file, a file that is not MCAP, or an MCAP file without a felis
-    ``/meta`` message (not a felis log, or cut off before its first message).
+    Raises LogError for a missing file, a file that is not MCAP, an MCAP file without a felis ``/meta`` message
+    (not a felis log, or cut off before its first chunk), and a log of felis 0.2's form (saying what to do).
     """
     path = Path(path)
     records, complete = _records(path)
-    topics: dict[int, str] = {}
-    counts: Counter[str] = Counter({t: 0 for t in TOPICS})
-    meta: dict | None = None
-    summary: dict | None = None
-    states: list[dict] = []
-    commands: list[dict] = []
-    events: list[dict] = []
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    counts: Counter[str] = Counter({t: 0 for t in ("/meta", "/joint_states", "/joint_commands", "/log")})
+    raw: dict[str, list] = {}
     for rec in records:
-        if isinstance(rec, Channel):
-            topics[rec.id] = rec.topic
-            continue
-        if not isinstance(rec, Message):
-            continue
-        topic = topics.get(rec.channel_id)
-        if topic is None:
-            continue
-        counts[topic] += 1
-        if topic not in TOPICS:
-            continue
-        try:
-            msg = json.loads(rec.data)
-        except (ValueError, UnicodeDecodeError):
-            raise LogError(f"{path}: {topic} message {counts[topic]} is not valid JSON") from None
-        if not isinstance(msg, dict):
-            raise LogError(f"{path}: {topic} message {counts[topic]} is not a JSON object")
-        if topic == "/state":
-            states.append(msg)
-        elif topic == "/command":
-            commands.append(msg)
-        elif topic == "/events":
-            events.append(msg)
-        elif topic == "/meta" and meta is None:
-            meta = msg
-        elif topic == "/summary":
-            summary = msg
-    if meta is None or not isinstance(meta.get("joints"), list):
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec
+        elif isinstance(rec, Message):
+            ch = channels.get(rec.channel_id)
+            if ch is None:
+                continue
+            counts[ch.topic] += 1
+            raw.setdefault(ch.topic, []).append((rec.log_time, rec.data, ch))
+    topics = {c.topic for c in channels.values()}
+    if "/state" in topics and "/joint_states" not in topics:
+        raise LogError(f"{path}: a felis 0.2 log (JSON /state and /command topics); this felis reads the Foxglove "
+                       "form of felis ≥ 0.3. Read it with felis 0.2 (pip install 'felis==0.2.*'), or record the run "
+                       "again")
+
+    def decode(topic: str) -> list[tuple[int, Any]]:
+        out = []
+        for i, (ns, data, ch) in enumerate(raw.get(topic, [])):
+            sch = schemas.get(ch.schema_id)
+            try:
+                if ch.message_encoding == "json":
+                    msg = json.loads(data)
+                    if not isinstance(msg, dict):
+                        raise ValueError("not an object")
+                elif ch.message_encoding == "protobuf" and sch is not None:
+                    msg = protobuf_class(sch.name, sch.data).FromString(data)
+                else:
+                    raise ValueError(f"unknown encoding {ch.message_encoding!r}")
+            except Exception:  # noqa: BLE001 - any decoding failure is the same fault for the user
+                raise LogError(f"{path}: {topic} message {i + 1} cannot be decoded ({ch.message_encoding})") from None
+            out.append((ns, msg))
+        return out
+
+    metas = decode("/meta")
+    if not metas or not isinstance(metas[0][1].get("joints"), list):
         raise LogError(f"{path}: not a felis run log (no /meta message with joints)")
+    start_ns, meta = metas[0]
     joints = [str(j) for j in meta["joints"]]
     n = len(joints)
-    try:
-        t = np.array([s.get("t") for s in states], dtype=float)
-        q = _rows([s["q"] for s in states], n, "/state", path)
-        dq = _rows([s["dq"] for s in states], n, "/state", path)
-        effort = height = quat = None
-        if any(s.get("effort") is not None for s in states):
-            effort = _rows([s.get("effort") or [None] * n for s in states], n, "/state effort", path)
-        if any(s.get("height") is not None for s in states):
-            height = np.array([s.get("height") for s in states], dtype=float)
-        if any(s.get("imu") is not None for s in states):
-            quats = [(s.get("imu") or {}).get("quat") or [None] * 4 for s in states]
-            quat = _rows(quats, 4, "/state imu", path)
-        cmd_t = np.array([c.get("t") for c in commands], dtype=float)
-        cmd_q = _rows([c["q"] for c in commands], n, "/command", path)
-    except (KeyError, TypeError) as e:
-        raise LogError(f"{path}: malformed felis run log ({e!r} in a message)") from None
-    return LogData(path=path, meta=meta, joints=joints, t=t, q=q, dq=dq, effort=effort, height=height,
-                   quat=quat, cmd_t=cmd_t, cmd_q=cmd_q, events=events, summary=summary,
-                   complete=complete, counts=dict(counts))
+
+    def times(items) -> np.ndarray:
+        return np.array([(ns - start_ns) / 1e9 for ns, _ in items], dtype=float)
+
+    states = decode("/joint_states")
+    t = times(states)
+    q, dq, effort = _joint_rows([m for _, m in states], joints, path, "/joint_states")
+    commands = decode("/joint_commands")
+    cmd_t = times(commands)
+    cmd_q, _, _ = _joint_rows([m for _, m in commands], joints, path, "/joint_commands")
+    state_ns = np.array([ns for ns, _ in states], dtype=np.int64)
+
+    def aligned(topic: str, width: int, values):
+        """(N, width) values of ``topic`` at the states' log times (NaN where missing); None without any."""
+        items = decode(topic)
+        if not items:
+            return None
+        out = np.full((len(states), width), np.nan)
+        ns = np.array([x for x, _ in items], dtype=np.int64)
+        at = np.searchsorted(state_ns, ns)
+        for k, (i, (_, m)) in enumerate(zip(at, items, strict=True)):
+            if i < len(states) and state_ns[i] == ns[k]:
+                out[i] = values(m)
+        return out
+
+    def _quat(m):
+        o = m.get("orientation") or {}
+        return [o.get("w", np.nan), o.get("x", np.nan), o.get("y", np.nan), o.get("z", np.nan)]
+
+    quat = aligned("/imu", 4, _quat)
+    h = aligned("/base", 1, lambda m: [m.get("height", np.nan)])
+    height = None if h is None else h[:, 0]
+    feet = [str(f) for f in meta.get("feet", [])]
+    contacts = None
+    c = decode("/contacts")
+    if c:
+        feet = list(c[0][1].keys())
+        contacts = np.zeros((len(states), len(feet)), dtype=bool)
+        at = np.searchsorted(state_ns, np.array([x for x, _ in c], dtype=np.int64))
+        for i, (ns, m) in zip(at, c, strict=True):
+            if i < len(states) and state_ns[i] == ns:
+                contacts[i] = [bool(m.get(f, False)) for f in feet]
+    events = []
+    for ns, m in decode("/log"):
+        kind, _, rest = m.message.partition(" ")
+        try:
+            detail = json.loads(rest) if rest else {}
+        except ValueError:
+            detail = {"message": rest}
+        events.append({"t": (ns - start_ns) / 1e9, "kind": m.name or kind, "detail": detail})
+    summaries = decode("/summary")
+    summary = summaries[-1][1] if summaries else None
+    return LogData(path=path, meta=meta, joints=joints, t=t, q=q.reshape(-1, n), dq=dq.reshape(-1, n),
+                   effort=effort, height=height, quat=quat, cmd_t=cmd_t, cmd_q=cmd_q.reshape(-1, n), events=events,
+                   summary=summary, complete=complete, counts=dict(counts), contacts=contacts, feet=feet,
+                   start_ns=int(start_ns))
 
 
 def log_info(path: str | Path) -> dict:
@@ -488,6 +949,7 @@ def log_info(path: str | Path) -> dict:
         "robot": data.robot,
         "joints": data.joints,
         "complete": data.complete,
+        "started_utc": data.meta.get("started_utc"),
         "duration_s": round(duration, 6),
         "counts": data.counts,
         "rate": round((n - 1) / duration, 3) if n > 1 and duration > 0 else 0.0,

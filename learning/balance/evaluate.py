@@ -111,8 +111,10 @@ class PushSim:
         self.robot = MujocoRobot(self.spec)
         self.robot.connect()
 
-    def run(self, p: Push, reaction: str | Callable = "none", trace: bool = False, monitors=()) -> PushOutcome:
-        """One push episode (module doc); ``monitors``: extra loop monitors (e.g. a video recorder)."""
+    def run(self, p: Push, reaction: str | Callable = "none", trace: bool = False, monitors=(), log=None
+            ) -> PushOutcome:
+        """One push episode (module doc); ``monitors``: extra loop monitors (e.g. a video recorder); ``log``: a
+        `felis.logs.runlog.RunLog` of the run (``felis eval balance --live``), with ``/balance`` and ``/phase``."""
         from felis.sim.scenarios import set_pose
 
         robot = self.robot
@@ -122,8 +124,9 @@ class PushSim:
         ctl = ReactiveController(_base(p.phase), monitor, reaction)
         fall = FallDetector(robot, tuple(self.spec.sensors.contacts))
         tr = _Trace(ctl) if trace else None
-        monitors = [Pusher(robot, p), fall, *([tr] if tr is not None else []), *monitors]
-        run_loop(robot, ctl, duration=p.t_s + FALL_WINDOW_S, monitors=monitors, keep_armed=True).raise_if_interrupted()
+        monitors = [Pusher(robot, p), fall, *([tr] if tr is not None else []), *monitors, *_skills(log, ctl)]
+        run_loop(robot, ctl, duration=p.t_s + FALL_WINDOW_S, monitors=monitors, keep_armed=True,
+                 log=log).raise_if_interrupted()
         return _outcome(p, reaction, ctl, fall, tr)
 
     def monitor_defaults(self) -> dict:
@@ -142,12 +145,21 @@ def _outcome(p: Push, reaction, ctl: ReactiveController, fall: FallDetector, tr:
                        np.array(tr.rows) if tr is not None else None)
 
 
+def _skills(log, controller) -> list:
+    """The log's ``/balance`` and ``/phase`` channels as a loop monitor (none without a log)."""
+    from felis.logs.skills import skill_channels
+
+    found = skill_channels(log, controller)
+    return [] if found is None else [found]
+
+
 def run_push_virtual(p: Push, reaction: str | Callable = "none", *, rate_hz: float = 50.0,
-                     monitor: dict | None = None, trace: bool = False) -> PushOutcome:
+                     monitor: dict | None = None, trace: bool = False, log=None) -> PushOutcome:
     """One push through the whole hardware path: `DynamixelRobot` → dynamixel-sdk → pseudo-terminal →
     virtual servos backed by MuJoCo, the IMU through its UART-RVC emulator, on the wall clock. The
     monitor has no simulator truth here: it estimates the CoM from the servos' angles and the IMU
-    (`felis.bodymodel`), as on the real cat. The push and the fall detector act on the bus's model."""
+    (`felis.bodymodel`), as on the real cat. The push and the fall detector act on the bus's model. ``log``: a
+    `felis.logs.runlog.RunLog` of the run (its scene from the body model: `felis.sim.scene.hardware_view`)."""
     from felis.drivers.dynamixel.robot import DynamixelRobot
     from felis.sim.bodymodel import load_body_model
     from felis.sim.servo_in_loop import virtual_bus
@@ -159,8 +171,8 @@ def run_push_virtual(p: Push, reaction: str | Callable = "none", *, rate_hz: flo
         with DynamixelRobot(spec, bus.port, imu_port=bus.imu_port) as robot:
             ctl = ReactiveController(_base(p.phase), BalanceMonitor(body, **(monitor or {})), reaction)
             tr = _Trace(ctl) if trace else None
-            run_loop(robot, ctl, duration=p.t_s + FALL_WINDOW_S, rate_hz=rate_hz, clock="wall",
-                     monitors=[test] + ([tr] if tr is not None else [])).raise_if_interrupted()
+            run_loop(robot, ctl, duration=p.t_s + FALL_WINDOW_S, rate_hz=rate_hz, clock="wall", log=log,
+                     monitors=[test] + ([tr] if tr is not None else []) + _skills(log, ctl)).raise_if_interrupted()
     fall = test.detector
     fall.t = test.fall_t
     return _outcome(p, reaction, ctl, fall, tr)

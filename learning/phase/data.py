@@ -233,7 +233,8 @@ def _debounce(t: np.ndarray, down: np.ndarray, min_s: float) -> np.ndarray:
 
 
 def from_log(path: str | Path, rate_hz: float | None = None, name: str | None = None) -> GaitRecording:
-    """A recording from a felis run log: t, q and contacts (when logged) of its ``/state`` messages, on a
+    """A recording from a felis run log: t, q and contacts (when logged) of its ``/joint_states`` and
+    ``/contacts`` messages, on a
     uniform grid at ``rate_hz`` (default: the run's rate from the log's summary, else its ``/meta``
     rate_hz); resampled (q linear, contacts nearest) only when the logged times are not already on it.
 
@@ -249,9 +250,9 @@ def from_log(path: str | Path, rate_hz: float | None = None, name: str | None = 
         raise PhaseError(str(e)) from None
     t = data.t
     if len(t) == 0:
-        raise PhaseError(f"{path}: no /state messages: the run logged no joint positions")
+        raise PhaseError(f"{path}: no /joint_states messages: the run logged no joint positions")
     if not np.isfinite(t).all():
-        raise PhaseError(f"{path}: /state message {int(np.argmax(~np.isfinite(t)))} has no time")
+        raise PhaseError(f"{path}: /joint_states message {int(np.argmax(~np.isfinite(t)))} has no time")
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         raise PhaseError(f"{path}: state times do not increase at message {back[0] + 1} (t = {t[back[0] + 1]:.4f} s)")
@@ -265,7 +266,7 @@ def from_log(path: str | Path, rate_hz: float | None = None, name: str | None = 
     if not (isinstance(rate, int | float) and math.isfinite(rate) and 0 < rate <= 10_000):
         raise PhaseError(f"{path}: rate must be a positive number of Hz, got {rate!r}")
     rate = float(rate)
-    contacts = _logged_contacts(path, len(t))
+    contacts = _logged_contacts(data, len(t))
     dt = 1.0 / rate
     q = data.q
     if not np.allclose(np.diff(t), dt, rtol=0.0, atol=1e-3 * dt):
@@ -291,29 +292,11 @@ def _log_rate(data) -> float | None:
     return float(rate) if isinstance(rate, int | float) else rate
 
 
-def _logged_contacts(path: Path, n: int) -> np.ndarray | None:
-    """(n, C) foot contacts of the log's /state messages, or None when any state lacks them.
-
-    `felis.logs.runlog.LogData` does not carry contacts, so the states are read again here with the same
-    tolerant record reader (a log cut off by a crash reads up to its last whole message)."""
-    from mcap.records import Channel, Message
-
-    from felis.logs.runlog import _records
-
-    records, _ = _records(path)
-    topics: dict[int, str] = {}
-    rows = []
-    for rec in records:
-        if isinstance(rec, Channel):
-            topics[rec.id] = rec.topic
-        elif isinstance(rec, Message) and topics.get(rec.channel_id) == "/state":
-            rows.append(json.loads(rec.data).get("contacts"))
-    if len(rows) != n or not rows or any(not isinstance(r, list) for r in rows):
+def _logged_contacts(data, n: int) -> np.ndarray | None:
+    """(n, C) foot contacts of the log's states (``/contacts``), or None when some state lacks them."""
+    if data.contacts is None or data.counts.get("/contacts", 0) != n or data.contacts.shape[1] == 0:
         return None
-    width = len(rows[0])
-    if width == 0 or any(len(r) != width for r in rows):
-        raise PhaseError(f"{path}: /state contacts change length between messages")
-    return np.array(rows, dtype=bool)
+    return data.contacts
 
 
 # ---------------------------------------------------------------------------------------------- files

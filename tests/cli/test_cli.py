@@ -234,8 +234,9 @@ def test_run_then_log_info_and_plot(tmp_path):
     assert info["robot"] == "arm"
     assert info["complete"] is True
     assert info["joints"] == ["joint1", "joint2", "joint3", "joint4", "gripper"]
-    assert abs(info["counts"]["/state"] - 100) <= 1
-    assert abs(info["counts"]["/command"] - 100) <= 1
+    assert abs(info["counts"]["/joint_states"] - 100) <= 1
+    assert abs(info["counts"]["/joint_commands"] - 100) <= 1
+    assert info["counts"]["/tf"] == info["counts"]["/joint_states"] and info["counts"]["/robot"] == 1
     assert info["counts"]["/meta"] == 1 and info["counts"]["/summary"] == 1
     assert info["rate"] == pytest.approx(100, rel=0.01)
     assert info["summary"]["run"]["ok"] is True
@@ -322,6 +323,8 @@ def test_demo(tmp_path):
     assert data.meta["backend"] == "dxl" and data.quat is not None  # IMU through the emulated RVC line
     assert abs(data.q[-1] - data.cmd_q[-1]).max() < 0.1  # the joints followed the commands through the bus
     assert data.q[-1, data.joints.index("tail_pitch")] > 0.4
+    # the cat in the scene from the body model: its geoms once, every body's pose each tick
+    assert bus["counts"]["/robot"] == 1 and bus["counts"]["/tf"] == bus["counts"]["/joint_states"] > 0
     assert "virtual Dynamixel bus" in r.stdout
 
     info = log_info(run / "drop.mcap")

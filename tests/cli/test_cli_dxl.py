@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import json
 
+import numpy as np
 import pytest
 from test_cli import felis, ok
 
@@ -124,6 +125,11 @@ def test_monitor_rate_and_exports(tmp_path, vb):
     with open(tmp_path / "m.mcap", "rb") as f:
         n = sum(1 for _ in make_reader(f).iter_messages(topics=["/monitor"]))
     assert n == summary["samples"]
+    from felis.logs.runlog import read_log
+
+    data = read_log(tmp_path / "m.mcap")  # the run logs' reader: joint states by joint name, epoch-ns times
+    assert data.joints == list(load_spec("cat").names) and len(data.t) == n and np.isfinite(data.q).all()
+    assert data.meta["kind"] == "monitor" and data.start_ns > 1_600_000_000 * 10**9
 
 
 def test_port_virtual_and_run_through_the_bus(tmp_path):

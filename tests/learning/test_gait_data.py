@@ -262,7 +262,7 @@ def test_from_log_errors(tmp_path):
     cases = [
         (tmp_path / "missing.mcap", "no such run log"),
         (tmp_path / "text.mcap", "not an MCAP file"),
-        (_write_log(tmp_path / "empty.mcap", spec, []), "no /state messages"),
+        (_write_log(tmp_path / "empty.mcap", spec, []), "no /joint_states messages"),
         (_write_log(tmp_path / "short.mcap", spec, ts[:150]), r"only 1\.49 s of states.*≥ 2 s"),
         (_write_log(tmp_path / "nan.mcap", spec, ts, q), r"joint hr_roll has no value \(NaN\) at t = 1\.230 s"),
         (_write_log(tmp_path / "back.mcap", spec, np.r_[ts[:50], ts[40:]]), "do not increase at message 50"),
@@ -272,7 +272,7 @@ def test_from_log_errors(tmp_path):
             from_log(path)
         _one_line(err)
     r = from_log(_write_log(tmp_path / "ok.mcap", spec, ts))  # regular times: kept as logged
-    assert np.array_equal(r.t, ts) and r.rate_hz == spec.rate_hz
+    assert np.allclose(r.t, ts, rtol=0, atol=1e-9) and r.rate_hz == spec.rate_hz  # log times are whole ns
 
 
 # ------------------------------------------------------------------------------------------ the command

@@ -1,0 +1,77 @@
+"""The MJCF model → `felis.scene.RobotScene` (the robot's shapes for a 3D viewer) and MuJoCo's body poses.
+
+`model_scene` reads the compiled model's geoms: those in MuJoCo's visible groups (0–2) with some opacity, on the
+robot's bodies (attached to the body's frame) and on the world body (the floor, a thin box of the plane's size);
+colours from the geom's material where it has one. Meshes are left out (the models have none). `MujocoPoses`
+reads ``xpos``/``xquat`` of every body after the physics step: the simulation's truth. `hardware_view` gives what
+a robot on servos can know: the same shapes on the body model's bodies, posed by `felis.scene.BodyModelPoses`.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from felis.scene import BodyModelPoses, Geom, RobotScene
+from felis.sim.robot import load_model, model_path
+from felis.spec import RobotSpec
+
+_SHAPES = {mujoco.mjtGeom.mjGEOM_BOX: "box", mujoco.mjtGeom.mjGEOM_SPHERE: "sphere",
+           mujoco.mjtGeom.mjGEOM_ELLIPSOID: "ellipsoid", mujoco.mjtGeom.mjGEOM_CYLINDER: "cylinder",
+           mujoco.mjtGeom.mjGEOM_CAPSULE: "capsule", mujoco.mjtGeom.mjGEOM_PLANE: "plane"}
+
+
+def model_scene(m: mujoco.MjModel, bodies: list[int] | None = None, path: np.ndarray | None = None) -> RobotScene:
+    """The shapes of ``bodies`` (MuJoCo body ids; default: every body but the world) and of the world body."""
+    if bodies is None:
+        bodies = list(range(1, m.nbody))
+    index = {b: i for i, b in enumerate(bodies)}
+    index[0] = -1
+    geoms = []
+    for g in range(m.ngeom):
+        b = int(m.geom_bodyid[g])
+        shape = _SHAPES.get(int(m.geom_type[g]))
+        if b not in index or shape is None or m.geom_group[g] > 2:
+            continue
+        rgba = m.mat_rgba[m.geom_matid[g]] if m.geom_matid[g] >= 0 else m.geom_rgba[g]
+        if rgba[3] <= 0:
+            continue
+        geoms.append(Geom(body=index[b], shape=shape, size=tuple(float(x) for x in m.geom_size[g]),
+                          pos=tuple(float(x) for x in m.geom_pos[g]), quat=tuple(float(x) for x in m.geom_quat[g]),
+                          rgba=tuple(float(x) for x in rgba)))
+    return RobotScene(bodies=tuple(m.body(b).name for b in bodies), geoms=tuple(geoms),
+                      path=None if path is None else np.asarray(path, dtype=float).reshape(-1, 3))
+
+
+class MujocoPoses:
+    """`felis.scene.BodyPoses` of a `felis.sim.MujocoRobot`: every body but the world, from MuJoCo's data (the
+    state just read: the loop logs before it advances the physics)."""
+
+    def __init__(self, robot):
+        self.robot = robot
+        m = robot.model
+        self.bodies = tuple(m.body(b).name for b in range(1, m.nbody))
+        self._out = np.zeros((m.nbody - 1, 7))
+
+    def __call__(self, state) -> np.ndarray:
+        d, out = self.robot.data, self._out
+        out[:, :3] = d.xpos[1:]
+        xq = d.xquat[1:]
+        out[:, 3:6] = xq[:, 1:]
+        out[:, 6] = xq[:, 0]
+        return out
+
+
+def hardware_view(spec: RobotSpec) -> tuple[RobotScene, BodyModelPoses] | None:
+    """The scene and poses of a robot on servos: the body model (floating-base robots; None for a fixed base,
+    whose model has no body model) and the MJCF's shapes on its bodies."""
+    from felis.errors import FelisError
+    from felis.sim.bodymodel import load_body_model
+
+    try:
+        body = load_body_model(spec)
+    except FelisError:
+        return None
+    m = load_model(model_path(spec))
+    ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in body.names]
+    return model_scene(m, ids), BodyModelPoses(body)
