@@ -181,8 +181,7 @@ class DropBatch:
         runs ``round((fall_time + margin_s) · rate_hz)`` ticks (as `LandingSim`) unless ``ticks`` gives them.
         ``record(k, states (B, 10, nstate), sensordata (B, 10, nsens), active)``: called after each tick's
         physics with the rows of the cats still running (``active``: their indices), e.g. to record motion."""
-        if rate_hz * self.model.opt.timestep * PHYSICS_PER_TICK != 1.0 and abs(
-                rate_hz * self.model.opt.timestep * PHYSICS_PER_TICK - 1.0) > 1e-9:
+        if abs(rate_hz * self.model.opt.timestep * PHYSICS_PER_TICK - 1.0) > 1e-9:
             raise ParameterError(f"the batch runs {PHYSICS_PER_TICK} physics steps per tick: rate {rate_hz} Hz "
                                  f"needs a {1 / (rate_hz * PHYSICS_PER_TICK):g} s timestep")
         B = len(drops)

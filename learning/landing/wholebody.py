@@ -105,6 +105,6 @@ def make_wholebody_samples(out_json: str | Path = DEFAULT_PATH, seed: int = 0, n
            "wall_s": round(time.perf_counter() - t0, 1), "samples": entries}
     arrays = {"vectors": np.stack([s.vectors for s in samples]),
               "heights_mm": np.stack([s.heights_mm for s in samples]), "up_z": np.stack([s.up_z for s in samples])}
-    write_atomic(npz, lambda f: np.savez(f, **arrays), "landing samples", ParameterError)
+    write_atomic(npz, lambda f: np.savez_compressed(f, **arrays), "landing samples", ParameterError)
     write_atomic(out_json, json.dumps(doc, indent=1) + "\n", "landing samples", ParameterError)
     return samples
