@@ -607,15 +607,8 @@ class RunLog(McapLog):
     def tick(self, state: State, command: Command, control_s: float) -> None:
         """One loop tick in one call (what `felis.loop.run_loop` uses): `state`, `command` at the state's time,
         `timing`."""
-        self._check_open()
-        ns = self.ns(state.t)
-        self._tick(ns)
-        v = None
-        if self._poses is not None:
-            v = self._poses(state)
-            if v is not None:
-                v = v.copy()
-        self._ticks.append((ns, state, v))
+        self.state(state)
+        ns = self._ticks[-1][0]
         self._cmds.append((ns, command.q))
         self._times.append((ns, control_s))
 
