@@ -13,12 +13,12 @@ of the message; one time base for run, monitor and eval logs):
 ``/joint_states``   foxglove.JointStates      every tick: per joint name, position (rad or m), velocity, effort
 ``/joint_commands`` foxglove.JointStates      every tick: the positions actually sent
 ``/tf``             foxglove.FrameTransforms  every tick: every body's pose in ``world`` (when the caller gives poses)
-``/imu``            JSON (felis.Imu)          orientation {x, y, z, w}, angular_velocity, linear_acceleration
+``/imu``            felis.Imu (Protobuf)      orientation {x, y, z, w}, angular_velocity, linear_acceleration
                                               {x, y, z}, tilt_deg
-``/contacts``       JSON (felis.Contacts)     one boolean per foot, by name
-``/base``           JSON (felis.Base)         height (m), when the backend knows it
+``/contacts``       felis.Contacts (Protob.)  one boolean per foot, by name
+``/base``           felis.Base (Protobuf)     height (m), when the backend knows it
 ``/faults``         JSON (felis.Faults)       hardware (error bits per joint), comm_errors, stale; when it changes
-``/timing``         JSON (felis.Timing)       control_ms: read → write time of the tick
+``/timing``         felis.Timing (Protobuf)   control_ms: read → write time of the tick
 ``/log``            foxglove.Log              events: name = the kind (clamp, watchdog, comm_lost, …), message =
                                               kind and its details as JSON
 ``/summary``        JSON (felis.Summary)      once at the end, if the caller gives one (timing, outcome)
@@ -34,9 +34,9 @@ every object, ``items`` on every array, no arrays of arrays; `schema_of` builds 
 Speed: a tick's messages are not encoded when the loop logs them: the states, commands and times are kept (and
 the body poses copied) until the chunk is finished, at most `FLUSH_S` of run time later, and then encoded all
 together, channel by channel: the Protobuf ones of all the kept ticks filled into templates in one numpy scatter
-per channel (`felis.logs.wire`), the JSON ones formatted in one call per channel. Done together they cost less than
-one tick at a time between physics steps, which evict the interpreter's working set from the CPU caches (in the
-loop of ``bench/sim_speed.py --with-log``: 15.2 against 16.6 ms of logging per 2 s cat episode). A `State` and a
+per channel (`felis.logs.wire`, `felis.logs.messages`). Done together they cost less than one tick at a time
+between physics steps, which evict the interpreter's working set from the CPU caches; the per-tick channels are all
+Protobuf because formatting four of them as JSON text was 40 % of the log's cost. A `State` and a
 `Command` are therefore not to be changed after they are logged (the robots make new ones each tick). The live
 view gets them in the same batches: a viewer sees a run at most `FLUSH_S` late. Events (``/log``) and messages
 are written at once.
@@ -93,6 +93,7 @@ from mcap.stream_reader import StreamReader
 from felis.errors import LogError
 from felis.files import MAX_LOG_BYTES, check_readable, prepare_parent
 from felis.hal import Command, State
+from felis.logs.messages import BASE, IMU, TIMING, as_dict, contacts_message
 from felis.logs.wire import FrameTransformsEncoder, JointStatesEncoder, runs
 from felis.scene import BodyPoses, RobotScene
 from felis.spec import RobotSpec
@@ -111,20 +112,10 @@ OLD_TOPICS = ("/state", "/command", "/events")  # felis ≤ 0.2: JSON only
 _NUM = {"type": "number"}
 _XYZ = {"type": "object", "properties": {"x": _NUM, "y": _NUM, "z": _NUM}}
 
-IMU_SCHEMA = {"type": "object", "title": "felis.Imu", "properties": {
-    "orientation": {"type": "object", "description": "the IMU's orientation in the world",
-                    "properties": {"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM}},
-    "angular_velocity": {**_XYZ, "description": "rad/s, IMU frame"},
-    "linear_acceleration": {**_XYZ, "description": "m/s², IMU frame"},
-    "tilt_deg": {**_NUM, "description": "angle between the body's up axis and world up"}}}
-BASE_SCHEMA = {"type": "object", "title": "felis.Base", "properties": {
-    "height": {**_NUM, "description": "height of the robot's reference site above the floor (m)"}}}
 FAULTS_SCHEMA = {"type": "object", "title": "felis.Faults", "properties": {
     "hardware": {"type": "array", "items": {"type": "integer"}, "description": "hardware error bits per joint"},
     "comm_errors": {"type": "integer"},
     "stale": {"type": "array", "items": {"type": "boolean"}, "description": "joints whose reading is old"}}}
-TIMING_SCHEMA = {"type": "object", "title": "felis.Timing", "properties": {
-    "control_ms": {**_NUM, "description": "read → compute → safety → write, this tick"}}}
 
 
 def schema_of(value: Any, title: str | None = None) -> dict:
@@ -399,25 +390,6 @@ _LEVEL = {"watchdog": LogLevel.Error, "comm_lost": LogLevel.Error, "hardware_err
           "nonfinite": LogLevel.Warning}
 
 
-_SEP = "\x1e"  # never in a formatted message (numbers, true/false, fixed keys)
-# The per-tick JSON channels write rates, accelerations, tilt and times with 9 significant digits ("%.9g": a third
-# of the time of Python's shortest round-trip repr, and finer than any sensor's resolution); what `read_log` reads
-# back (the IMU's orientation, the height) is written exactly, as are the Protobuf channels' doubles.
-
-
-def _formatted(fmt: str, rows: list) -> list[bytes]:
-    """``fmt % row`` for every row, encoded, in one formatting call (a batch of ticks' JSON messages)."""
-    if len(rows) == 1:
-        return [(fmt % tuple(rows[0])).encode()]
-    flat = [v for row in rows for v in row]
-    return (_SEP.join([fmt] * len(rows)) % tuple(flat)).encode().split(_SEP.encode())
-
-
-def _imu_template() -> str:
-    return ('{"orientation":{"x":%r,"y":%r,"z":%r,"w":%r},"angular_velocity":{"x":%.9g,"y":%.9g,'
-            '"z":%.9g},"linear_acceleration":{"x":%.9g,"y":%.9g,"z":%.9g},"tilt_deg":%.9g}')
-
-
 class RunLog(McapLog):
     """Writes one run: joint states and commands, body transforms, IMU, contacts, events (module doc).
 
@@ -457,10 +429,9 @@ class RunLog(McapLog):
         self._put_jc = self.channel("/joint_commands", js_schema, "protobuf")
         self._put_imu = self._put_contacts = self._put_base = self._put_faults = self._put_timing = None
         self._put_log = self.channel("/log", Log.get_schema(), "protobuf")
-        self._imu_fmt = _imu_template()
         feet = [str(f) for f in spec.sensors.contacts]
         self._feet = feet
-        self._contacts_fmt = "{" + ",".join(f'"{f}":%s' for f in feet) + "}"
+        self._contacts_msg = contacts_message(feet)
         self._last_faults: tuple | None = None
         self._faults_seen = None
         self._poses = poses
@@ -530,63 +501,46 @@ class RunLog(McapLog):
         if times:
             self._times = []
             if self._put_timing is None:
-                self._put_timing = self.channel("/timing", TIMING_SCHEMA)
+                self._put_timing = self.channel("/timing", TIMING.schema, "protobuf")
             put = self._put_timing
-            for (n, _), text in zip(times, _formatted('{"control_ms":%.9g}', [(c * 1e3,) for _, c in times]),
-                                    strict=True):
-                put(n, text)
+            for (n, _), m in zip(times, TIMING.encode_many(np.array([[c * 1e3] for _, c in times], dtype=float)),
+                                 strict=True):
+                put(n, m)
         super()._write_pending()
 
     def _state_json(self, ns: list[int], states: list[State]) -> None:
-        """``/imu``, ``/contacts``, ``/base``, ``/faults`` of deferred states (where each state has them): each
-        channel's messages formatted in one go (`_formatted`)."""
-        imus, rows = [], []
-        for n, s in zip(ns, states, strict=True):  # plain floats: faster than numpy for a few values
-            imu = s.imu
-            if imu is not None:
-                w, x, y, z = imu.quat.tolist()
-                c = 1.0 - 2.0 * (x * x + y * y)
-                row = [x, y, z, w, *imu.gyro.tolist(), *imu.accel.tolist(),
-                       math.degrees(math.acos(max(-1.0, min(1.0, c)))) if c == c else math.nan]
-                imus.append(n)
-                rows.append(row)
+        """``/imu``, ``/contacts``, ``/base`` (felis Protobuf, `felis.logs.messages`: one scatter per channel) and
+        ``/faults`` (JSON, when they change) of deferred states, where each state has them."""
+        imus = [(n, s.imu) for n, s in zip(ns, states, strict=True) if s.imu is not None]
         if imus:
-            total = sum(sum(r) for r in rows)
-            if total - total == 0:  # all finite
-                texts = _formatted(self._imu_fmt, rows)
-            else:  # a quiet or broken reading: its finite values only
-                texts = [(self._imu_fmt % tuple(r)).encode() if math.isfinite(sum(r)) else _text(jsonable({
-                    "orientation": dict(zip("xyzw", r[:4], strict=True)),
-                    "angular_velocity": dict(zip("xyz", r[4:7], strict=True)),
-                    "linear_acceleration": dict(zip("xyz", r[7:10], strict=True)), "tilt_deg": r[10]}))
-                    for r in rows]
+            quat = np.array([i.quat for _, i in imus], dtype=float).reshape(-1, 4)  # (w, x, y, z)
+            x, y = quat[:, 1], quat[:, 2]
+            with np.errstate(invalid="ignore"):
+                tilt = np.degrees(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
+            v = np.concatenate([quat[:, 1:], quat[:, :1], np.array([i.gyro for _, i in imus], dtype=float),
+                                np.array([i.accel for _, i in imus], dtype=float), tilt[:, None]], axis=1)
             if self._put_imu is None:
-                self._put_imu = self.channel("/imu", IMU_SCHEMA)
+                self._put_imu = self.channel("/imu", IMU.schema, "protobuf")
             put = self._put_imu
-            for n, text in zip(imus, texts, strict=True):
-                put(n, text)
+            for (n, _), m in zip(imus, IMU.encode_many(v), strict=True):
+                put(n, m)
         nf = len(self._feet)
         cs = [(n, s.contacts) for n, s in zip(ns, states, strict=True)
               if s.contacts is not None and len(s.contacts) == nf]
         if cs and nf:
             if self._put_contacts is None:
-                self._put_contacts = self.channel("/contacts", {
-                    "type": "object", "title": "felis.Contacts",
-                    "properties": {f: {"type": "boolean", "description": "foot touches the ground"}
-                                   for f in self._feet}})
+                self._put_contacts = self.channel("/contacts", self._contacts_msg.schema, "protobuf")
             put = self._put_contacts
-            rows = [["true" if b else "false" for b in c.tolist()] for _, c in cs]
-            for (n, _), text in zip(cs, _formatted(self._contacts_fmt, rows), strict=True):
-                put(n, text)
-        hs = [(n, float(s.height)) for n, s in zip(ns, states, strict=True) if s.height is not None]
+            flags = np.array([c for _, c in cs], dtype=bool)
+            for (n, _), m in zip(cs, self._contacts_msg.encode_many(None, flags), strict=True):
+                put(n, m)
+        hs = [(n, s.height) for n, s in zip(ns, states, strict=True) if s.height is not None]
         if hs:
             if self._put_base is None:
-                self._put_base = self.channel("/base", BASE_SCHEMA)
+                self._put_base = self.channel("/base", BASE.schema, "protobuf")
             put = self._put_base
-            texts = (_formatted('{"height":%r}', [(h,) for _, h in hs]) if all(math.isfinite(h) for _, h in hs)
-                     else [f'{{"height":{h!r}}}'.encode() if math.isfinite(h) else b"{}" for _, h in hs])
-            for (n, _), text in zip(hs, texts, strict=True):
-                put(n, text)
+            for (n, _), m in zip(hs, BASE.encode_many(np.array([[h] for _, h in hs], dtype=float)), strict=True):
+                put(n, m)
         for n, s in zip(ns, states, strict=True):
             f = s.faults
             if f is not None and f is not self._faults_seen:  # the same object: unchanged (the simulation's)
@@ -861,6 +815,8 @@ def read_log(path: str | Path) -> LogData:
                         raise ValueError("not an object")
                 elif ch.message_encoding == "protobuf" and sch is not None:
                     msg = protobuf_class(sch.name, sch.data).FromString(data)
+                    if sch.name.startswith("felis."):  # felis's own messages read as their JSON form did
+                        msg = as_dict(msg)
                 else:
                     raise ValueError(f"unknown encoding {ch.message_encoding!r}")
             except Exception:  # noqa: BLE001 - any decoding failure is the same fault for the user

@@ -80,6 +80,10 @@ class _Msg:
         self.parts += [varint(field << 3 | 1), _Slot("d", 8)]
         return self
 
+    def boolean(self, field: int) -> _Msg:
+        self.parts += [varint(field << 3 | 0), _Slot("b", 1)]
+        return self
+
     def string(self, field: int, text: str) -> _Msg:
         raw = text.encode()
         self.parts += [varint(field << 3 | 2) + varint(len(raw)) + raw]
@@ -95,53 +99,67 @@ class _Msg:
 
 
 class _Template:
-    """A compiled message: the bytes, where the doubles go (in order), where the timestamp bodies go. Compiled
-    once per layout (`_compiled`); each encoder fills its own copy of the bytes (`copy`)."""
+    """A compiled message: the bytes, where the doubles start (one offset each), where the timestamp bodies and the
+    booleans go. Compiled once per layout (`_compiled`); each encoder fills its own copy of the bytes (`copy`).
+
+    Filling writes whole values, not bytes: the buffer is seen through a window view with a one-byte stride
+    (``dtype`` u8 for the doubles' bits, V<size> for the timestamps), so one fancy-index assignment puts every
+    double of K messages in place (the view's items overlap; the slots written never do)."""
 
     def __init__(self, msg: _Msg, stamp_size: int):
-        raw, dbl, tsi = bytearray(), [], []
+        raw, slots = bytearray(), {"d": [], "t": [], "b": []}
         for p in msg.parts:
             if isinstance(p, _Slot):
-                (dbl if p.kind == "d" else tsi).extend(range(len(raw), len(raw) + p.size))
+                slots[p.kind].append(len(raw))
                 raw += bytes(p.size)
             else:
                 raw += p
         self.base = np.frombuffer(bytes(raw), dtype=np.uint8).copy()
-        self.buf = self.base.copy()
-        self.doubles = np.array(dbl, dtype=np.intp)
-        self.stamps = np.array(tsi, dtype=np.intp)
-        self.n_stamps = len(tsi) // stamp_size if stamp_size else 0
-        self._many: dict[int, tuple] = {}  # K → (scratch for K messages, their double and stamp indices)
+        self.doubles = np.array(slots["d"], dtype=np.intp)  # start of each double
+        self.stamps = np.array(slots["t"], dtype=np.intp)  # start of each timestamp body
+        self.bools = np.array(slots["b"], dtype=np.intp)
+        self.stamp_size = stamp_size
+        self.n_stamps = len(slots["t"])
+        self._many: dict[int, tuple] = {}  # K → (scratch for K messages, its windows, the slots of K messages)
+
+    def _scratch(self, k: int) -> tuple:
+        many = self._many.get(k)
+        if many is None:
+            n = len(self.base)
+            off = (np.arange(k, dtype=np.intp) * n)[:, None]
+            buf = np.tile(self.base, k)
+            u8 = np.ndarray(shape=(max(len(buf) - 7, 0),), dtype="<u8", buffer=buf, strides=(1,))
+            size = max(self.stamp_size, 1)
+            ts = np.ndarray(shape=(max(len(buf) - size + 1, 0),), dtype=f"V{size}", buffer=buf, strides=(1,))
+            many = self._many[k] = (buf, u8, ts, (self.doubles[None, :] + off).reshape(-1),
+                                    (self.stamps[None, :] + off).reshape(-1), (self.bools[None, :] + off).reshape(-1))
+        return many
 
     def fill(self, values: np.ndarray, stamp: bytes) -> bytes:
         """``values``: a C-contiguous float64 array with the doubles in template order."""
-        buf = self.buf
-        buf[self.doubles] = values.view(np.uint8).reshape(-1)
-        if self.n_stamps:
-            buf[self.stamps] = np.frombuffer(stamp * self.n_stamps, dtype=np.uint8)
-        return buf.tobytes()
+        return self.fill_many(values.reshape(1, -1), [stamp] if self.n_stamps else None)[0]
 
-    def fill_many(self, values: np.ndarray, stamps: Sequence[bytes]) -> list[bytes]:
-        """``len(stamps)`` messages at once (one scatter for all): ``values`` (K, doubles) C-contiguous float64,
-        ``stamps`` the K timestamp bodies, each of this template's size."""
-        k = len(stamps)
-        many = self._many.get(k)
-        if many is None:
-            off = (np.arange(k, dtype=np.intp) * len(self.base))[:, None]
-            many = self._many[k] = (np.tile(self.base, k), (self.doubles[None, :] + off).reshape(-1),
-                                    (self.stamps[None, :] + off).reshape(-1))
-        buf, dbl, tsi = many
-        buf[dbl] = values.view(np.uint8).reshape(-1)
+    def fill_many(self, values: np.ndarray, stamps: Sequence[bytes] | None = None,
+                  flags: np.ndarray | None = None) -> list[bytes]:
+        """K messages at once (one scatter for all): ``values`` (K, doubles) C-contiguous float64, ``stamps``
+        the K timestamp bodies, each of this template's size (None: a template without a timestamp), ``flags``
+        (K, booleans) for a template with boolean fields."""
+        k = len(values)
+        buf, u8, ts, dbl, tsi, bi = self._scratch(k)
+        if len(dbl):
+            u8[dbl] = values.view("<u8").reshape(-1)
+        if len(bi):
+            buf[bi] = np.asarray(flags, dtype=bool).reshape(-1)
         if self.n_stamps:
-            buf[tsi] = np.frombuffer(b"".join([s * self.n_stamps for s in stamps]), dtype=np.uint8)
+            ts[tsi] = np.repeat(np.frombuffer(b"".join(stamps), dtype=ts.dtype), self.n_stamps)
         raw, n = buf.tobytes(), len(self.base)
         return [raw[i * n:(i + 1) * n] for i in range(k)]
 
     def copy(self) -> _Template:
-        """The same layout with buffers of its own (the indices are shared, never written)."""
+        """The same layout with scratch buffers of its own (the offsets are shared, never written)."""
         out = object.__new__(_Template)
-        out.base, out.doubles, out.stamps, out.n_stamps = self.base, self.doubles, self.stamps, self.n_stamps
-        out.buf = self.base.copy()
+        out.base, out.doubles, out.stamps, out.bools = self.base, self.doubles, self.stamps, self.bools
+        out.stamp_size, out.n_stamps = self.stamp_size, self.n_stamps
         out._many = {}
         return out
 

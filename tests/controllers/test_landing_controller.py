@@ -18,6 +18,8 @@ from felis.errors import ParameterError
 from felis.hal import Imu, State
 from felis.learning.landing.evaluate import LandingSim
 from felis.learning.landing.policy import LANDING_HEIGHT_M
+from felis.logs.messages import as_dict
+from felis.logs.runlog import protobuf_class
 from felis.scenarios.drop import Drop
 from felis.spec import load_spec
 
@@ -153,7 +155,8 @@ def test_cli_run_landing_drop_through_the_virtual_bus(tmp_path, policy):
     assert log.summary["final_tilt_deg"] == pytest.approx(out["final_tilt_deg"], abs=1e-3)
     assert log.height is None  # so the controller predicted it from the drop height
     with open(tmp_path / "drop.mcap", "rb") as f:
-        imus = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/imu"])]
+        imus = [as_dict(protobuf_class(s.name, s.data).FromString(m.data))
+                for s, _, m in make_reader(f).iter_messages(topics=["/imu"])]
     accel = [np.linalg.norm([s["linear_acceleration"][k] for k in "xyz"]) for s in imus]
     fall = int(out["drop"]["free_fall_s"] * 100)  # ticks at 100 Hz
     assert min(accel[: fall - 5]) < 3.0  # the accelerometer felt free fall (held, it reads 9.81 m/s²)

@@ -24,8 +24,9 @@ from foxglove.messages import (
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from felis.logs.messages import BASE, IMU, TIMING, contacts_message
 from felis.logs.monitorlog import MonitorExport
-from felis.logs.runlog import IMU_SCHEMA, jsonable, protobuf_class, schema_of
+from felis.logs.runlog import FAULTS_SCHEMA, jsonable, protobuf_class, schema_of
 from felis.logs.skills import BALANCE_SCHEMA, PHASE_SCHEMA
 from felis.logs.wire import FrameTransformsEncoder, JointStatesEncoder
 from tests.logs.foxglove_rules import Rejected, parse_json_schema
@@ -85,7 +86,7 @@ def test_the_port_rejects_what_foxglove_rejected_in_felis_0_2():
                 {"type": "object"}):  # felis 0.2's /summary
         with pytest.raises(Rejected):
             parse_json_schema(bad)
-    parse_json_schema(IMU_SCHEMA)
+    parse_json_schema(FAULTS_SCHEMA)
     parse_json_schema(BALANCE_SCHEMA)
     parse_json_schema(PHASE_SCHEMA)
 
@@ -97,6 +98,10 @@ def test_inferred_schemas_pass_for_awkward_values():
     assert "a" not in value and "h" not in value and value["b"] == [{"items": [1, 2]}, {"items": [3]}]
 
 
+FELIS = {m.schema.name: m.schema.data for m in (IMU, BASE, TIMING, contacts_message(["fl_foot", "fr_foot", "hl_foot",
+                                                                                     "hr_foot"]))}
+
+
 @pytest.mark.parametrize("which", ["drop_log", "balance_log", "monitor_log"])
 def test_every_channel_is_well_known_or_passes_foxglove_rules(which, request):
     path = request.getfixturevalue(which)
@@ -106,7 +111,9 @@ def test_every_channel_is_well_known_or_passes_foxglove_rules(which, request):
     for ch in summary.channels.values():
         schema = summary.schemas[ch.schema_id]
         seen.add(ch.topic)
-        if ch.message_encoding == "protobuf":
+        if ch.message_encoding == "protobuf" and schema.name.startswith("felis."):  # felis's own, in Protobuf
+            assert schema.encoding == "protobuf" and schema.data == FELIS[schema.name], ch.topic
+        elif ch.message_encoding == "protobuf":
             assert schema.encoding == "protobuf" and WELL_KNOWN.get(schema.name) == schema.data, ch.topic
         else:
             assert (ch.message_encoding, schema.encoding) == ("json", "jsonschema"), ch.topic

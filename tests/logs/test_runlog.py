@@ -20,8 +20,9 @@ from mcap.writer import Writer
 
 from felis.errors import LogError
 from felis.hal import Command, Faults, Imu, State
+from felis.logs.messages import as_dict
 from felis.logs.plot import plot_log
-from felis.logs.runlog import LogData, RunLog, log_info, read_log
+from felis.logs.runlog import LogData, RunLog, log_info, protobuf_class, read_log
 from felis.rotations import tilt_deg
 from felis.spec import load_spec
 
@@ -116,14 +117,15 @@ def test_opens_with_standard_mcap_reader(tmp_path, spec):
         kinds = {t: (c.message_encoding, summary.schemas[c.schema_id].name) for t, c in topics.items()}
         assert kinds["/joint_states"] == kinds["/joint_commands"] == ("protobuf", "foxglove.JointStates")
         assert kinds["/log"] == ("protobuf", "foxglove.Log")
-        assert kinds["/imu"] == ("json", "felis.Imu") and kinds["/meta"] == ("json", "felis.Meta")
+        assert kinds["/imu"] == ("protobuf", "felis.Imu") and kinds["/meta"] == ("json", "felis.Meta")
         assert summary.statistics.channel_message_counts[topics["/joint_states"].id] == 60
         msgs = list(reader.iter_messages(topics=["/imu"]))
         meta = next(reader.iter_messages(topics=["/meta"]))[2]
     assert len(msgs) == 60
     _, _, message = msgs[5]
     assert message.log_time == meta.log_time + 50_000_000  # epoch ns: start + run time
-    body = json.loads(message.data)
+    schema = summary.schemas[topics["/imu"].schema_id]
+    body = as_dict(protobuf_class(schema.name, schema.data).FromString(message.data))
     assert set(body) == {"orientation", "angular_velocity", "linear_acceleration", "tilt_deg"}
     assert set(body["orientation"]) == {"x", "y", "z", "w"}  # Foxglove's order, by name
 
