@@ -51,6 +51,7 @@ from felis.drivers.dynamixel.controltable import (
     control_table,
     decode_hardware_error,
     model_name,
+    unsupported,
 )
 from felis.drivers.dynamixel.group import P_ID, BlockRead, GroupTransfers, ServoStats, status_params
 from felis.drivers.dynamixel.port import (
@@ -271,7 +272,7 @@ class DynamixelBus(GroupTransfers, BusPort):
             f = self.ping(dxl_id)
             t = self.models.get(dxl_id)
             if t is None:
-                raise ParameterError(f"servo {dxl_id} is a {f.model}, which felis has no control table for")
+                raise ParameterError(f"servo {dxl_id}: {unsupported(f.model_number)}")
         return t
 
     def register(self, dxl_id: int, model: str, firmware: int | None = None) -> None:

@@ -13,20 +13,25 @@ with ``offset = 2048`` for absolute positions (the centre tick is the joint zero
 Names are snake_case (``present_position``); :meth:`ControlTable.item` also accepts the e-Manual
 spelling (``"Present Position"``) and suggests the nearest name on a typo.
 
-Per-model differences (``shared/reference/dynamixel.md``): XL330-M288-T has Current Limit and Goal
-Current in 1 mA units and no 4.5 Mbps; XL430-W250-T has no current items, its address 126 is
-Present Load (0.1 %), and no current-based operating modes; XM430-W350-T has current in 2.69 mA
-units. Defaults and ranges follow the ROBOTIS e-Manual; the few we could not check are marked.
+Where the tables come from: addresses and sizes are read at import from the tables the installed
+``dynamixel-sdk`` ships (``dynamixel_easy_sdk/control_table/*.model``; which models and why, and which files
+are skipped: `felis.drivers.dynamixel.models`). Everything else is typed here once, keyed by item name
+(`_rules`), with the per-model numbers the rules need (defaults, limits, current unit) from
+`models.MODELS` and the factory P/D gains from `felis.servos`. Per-model differences the e-Manual gives:
+Current Limit / Goal / Present Current in 1 mA on the X330s, 1.34 mA on XH430-V, 2.69 mA on the other X430/X540;
+the XL430, 2XL430, XC430 and 2XC430 have no current items, their address 126 is Present Load (0.1 %), and no
+current-based operating modes; the X330s have no 4.5 Mbps and have PWM Slope (62); the XM540/XH540/XD540 have
+External Ports (56…58, 152…157); the XW series has no LED. Defaults and ranges follow the ROBOTIS e-Manual.
+The SDK aliases ``Indirect Address/Data Write/Read`` are not items.
 
 Indirect Addressing (`ControlTable.indirect` = Indirect Address 1's address, Indirect Data 1's address,
 count): ``indirect_address_n`` (2 bytes, RAM) holds the address that ``indirect_data_n`` (1 byte)
 stands for; a read or write of the data byte acts on that address, with its access and range, so
 scattered items can be gathered into one block for one sync read. Valid targets are the RAM area,
-64…661 (e-Manual); the factory value of entry n is 224 + n − 1 (the data byte itself). The first bank
-only: XL330-M288-T has entries 1–20 (address 168…206, data 224…243), XL430-W250-T and XM430-W350-T
-1–28 (168…222, data 224…251; their second bank at 578/634 is not modelled). Addresses and counts are
-those of the SDK's shipped tables (``dynamixel_easy_sdk/control_table/*.model``: ``Indirect Address 1``
-168, ``Indirect Data 1`` 224; the XL330's read block starts at entry 7, 180/230) and the e-Manual.
+64…661 (e-Manual); the factory value of entry n is Indirect Data 1 + n − 1 (the data byte itself). The first
+bank only: the X330s have entries 1–20, the others 1–28 (their second bank at 578/634 is not modelled). The
+addresses of entry 1 are the SDK file's (``Indirect Address 1`` 168, ``Indirect Data 1`` 224), the counts
+the e-Manual's.
 """
 
 from __future__ import annotations
@@ -36,8 +41,17 @@ import math
 import re
 from dataclasses import dataclass, field
 
+from felis.drivers.dynamixel.models import MODELS, ModelSpec, sdk_items, sdk_model_files
 from felis.errors import ParameterError
-from felis.servos import HARDWARE_ERROR_BITS, RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, SERVOS, hardware_error_names
+from felis.servos import (
+    HARDWARE_ERROR_BITS,
+    RAD_PER_TICK,
+    RAD_S_PER_VELOCITY_UNIT,
+    SERVOS,
+    ServoModel,
+    canonical_name,
+    hardware_error_names,
+)
 
 EEPROM_END = 64  # addresses below are EEPROM: writable only while Torque Enable is 0
 CENTRE_TICK = 2048
@@ -171,121 +185,137 @@ def normalize_name(name: str) -> str:
     return re.sub(r"[\s\-]+", "_", name.strip()).lower()
 
 
-INDIRECT_ADDRESS, INDIRECT_DATA = 168, 224  # Indirect Address 1 / Indirect Data 1 on every X-series model here
+INDIRECT_ADDRESS, INDIRECT_DATA = 168, 224  # Indirect Address 1 / Indirect Data 1 as the SDK files give them
 INDIRECT_TARGETS = (EEPROM_END, 661)  # what an Indirect Address may point at: the RAM area
+_SDK_ALIASES = ("Indirect Address Write", "Indirect Data Write", "Indirect Address Read", "Indirect Data Read")
+_SDK_NAMES = {"Secondary(Shadow) ID": "secondary_id"}  # SDK spelling -> felis name, where normalize_name differs
 
 
-def _table(model: str, *, firmware: int, current_unit_ma: float | None, baud_codes: range, modes: tuple[int, ...],
-           voltage: tuple[int, int, int, int], temperature_limit: int, velocity_limit: tuple[int, int],
-           current_limit: int | None, gains: tuple[int, int, int], velocity_gains: tuple[int, int],
-           indirect: int = 0) -> ControlTable:
-    s = SERVOS[model]
-    vmax_default, vmax_hi = velocity_limit
-    max_v, min_v, v_lo, v_hi = voltage
-    d, i, p = gains
-    vi, vp = velocity_gains
-    rpm = RAD_S_PER_VELOCITY_UNIT
-    tick = RAD_PER_TICK
-    bauds = {c: BAUD_RATES[c] for c in baud_codes}
-    mode_names = {m: OPERATING_MODES[m] for m in modes}
-    items = [
-        Item("model_number", 0, 2, "R", s.model_number, 0, 65535),
-        Item("model_information", 2, 4, "R", 0, 0, 2**32 - 1),
-        Item("firmware_version", 6, 1, "R", firmware, 0, 255),
-        Item("id", 7, 1, "RW", 1, 0, 252),
-        Item("baud_rate", 8, 1, "RW", 1, min(bauds), max(bauds), "bps", values=dict(bauds)),
-        Item("return_delay_time", 9, 1, "RW", 250, 0, 254, "s", 2e-6),
-        Item("drive_mode", 10, 1, "RW", 0, 0, 13),
-        Item("operating_mode", 11, 1, "RW", 3, 0, 16, values=dict(mode_names)),
-        Item("secondary_id", 12, 1, "RW", 255, 0, 255),
-        Item("protocol_type", 13, 1, "RW", 2, 1, 2),
-        Item("homing_offset", 20, 4, "RW", 0, -1_044_479, 1_044_479, "rad", tick, signed=True),
-        Item("moving_threshold", 24, 4, "RW", 10, 0, 1023, "rad/s", rpm),
-        Item("temperature_limit", 31, 1, "RW", temperature_limit, 0, 100, "°C"),
-        Item("max_voltage_limit", 32, 2, "RW", max_v, v_lo, v_hi, "V", 0.1),
-        Item("min_voltage_limit", 34, 2, "RW", min_v, v_lo, v_hi, "V", 0.1),
-        Item("pwm_limit", 36, 2, "RW", 885, 0, 885, "", 1 / 885),
-    ]
-    if current_limit is not None:
-        items.append(Item("current_limit", 38, 2, "RW", current_limit, 0, current_limit, "A",
-                          current_unit_ma / 1000))
-    items += [
-        Item("velocity_limit", 44, 4, "RW", vmax_default, 0, vmax_hi, "rad/s", rpm),
-        Item("max_position_limit", 48, 4, "RW", 4095, 0, 4095, "rad", tick, CENTRE_TICK),
-        Item("min_position_limit", 52, 4, "RW", 0, 0, 4095, "rad", tick, CENTRE_TICK),
-        Item("shutdown", 63, 1, "RW", 52, 0, 255),
-        Item("torque_enable", 64, 1, "RW", 0, 0, 1),
-        Item("led", 65, 1, "RW", 0, 0, 1),
-        Item("status_return_level", 68, 1, "RW", 2, 0, 2),
-        Item("registered_instruction", 69, 1, "R", 0, 0, 1),
-        Item("hardware_error_status", 70, 1, "R", 0, 0, 255),
-        Item("velocity_i_gain", 76, 2, "RW", vi, 0, 16383),
-        Item("velocity_p_gain", 78, 2, "RW", vp, 0, 16383),
-        Item("position_d_gain", 80, 2, "RW", d, 0, 16383),
-        Item("position_i_gain", 82, 2, "RW", i, 0, 16383),
-        Item("position_p_gain", 84, 2, "RW", p, 0, 16383),
-        Item("feedforward_2nd_gain", 88, 2, "RW", 0, 0, 16383),
-        Item("feedforward_1st_gain", 90, 2, "RW", 0, 0, 16383),
-        Item("bus_watchdog", 98, 1, "RW", 0, 0, 127, "s", 0.02),
-        Item("goal_pwm", 100, 2, "RW", 0, -885, 885, "", 1 / 885, signed=True),
-    ]
-    if current_limit is not None:
-        items.append(Item("goal_current", 102, 2, "RW", 0, -current_limit, current_limit, "A",
-                          current_unit_ma / 1000, signed=True))
-    items += [
-        Item("goal_velocity", 104, 4, "RW", 0, -vmax_hi, vmax_hi, "rad/s", rpm, signed=True),
-        Item("profile_acceleration", 108, 4, "RW", 0, 0, 32767, "rad/s²", _PROFILE_ACC_RAD_S2),
-        Item("profile_velocity", 112, 4, "RW", 0, 0, 32767, "rad/s", rpm),
-        Item("goal_position", 116, 4, "RW", 0, -1_048_575, 1_048_575, "rad", tick, CENTRE_TICK, signed=True),
-        Item("realtime_tick", 120, 2, "R", 0, 0, 32767, "s", 1e-3),
-        Item("moving", 122, 1, "R", 0, 0, 1),
-        Item("moving_status", 123, 1, "R", 0, 0, 255),
-        Item("present_pwm", 124, 2, "R", 0, -885, 885, "", 1 / 885, signed=True),
-    ]
-    if current_unit_ma is not None:
-        items.append(Item("present_current", 126, 2, "R", 0, -32768, 32767, "A", current_unit_ma / 1000, signed=True))
-    else:
-        items.append(Item("present_load", 126, 2, "R", 0, -1000, 1000, "", 0.001, signed=True))
-    items += [
-        Item("present_velocity", 128, 4, "R", 0, -2**31, 2**31 - 1, "rad/s", rpm, signed=True),
-        Item("present_position", 132, 4, "R", CENTRE_TICK, -2**31, 2**31 - 1, "rad", tick, CENTRE_TICK,
-             signed=True),
-        Item("velocity_trajectory", 136, 4, "R", 0, -2**31, 2**31 - 1, "rad/s", rpm, signed=True),
-        Item("position_trajectory", 140, 4, "R", 0, -2**31, 2**31 - 1, "rad", tick, CENTRE_TICK, signed=True),
-        Item("present_input_voltage", 144, 2, "R", (max_v + min_v) // 2, 0, 65535, "V", 0.1),
-        Item("present_temperature", 146, 1, "R", 30, 0, 255, "°C"),
-    ]
-    lo, hi = INDIRECT_TARGETS
-    items += [Item(f"indirect_address_{n}", INDIRECT_ADDRESS + 2 * (n - 1), 2, "RW", INDIRECT_DATA + n - 1, lo, hi)
-              for n in range(1, indirect + 1)]
-    items += [Item(f"indirect_data_{n}", INDIRECT_DATA + n - 1, 1, "RW", 0, 0, 255) for n in range(1, indirect + 1)]
-    return ControlTable(model, s.model_number, {it.name: it for it in items}, bauds, mode_names,
-                        indirect=(INDIRECT_ADDRESS, INDIRECT_DATA, indirect) if indirect else None)
+def _rules(m: ModelSpec, s: ServoModel) -> dict[str, tuple]:
+    """Item name -> (access, default, lo, hi, unit, scale, offset, signed, values) for one model: the typed layer
+    the SDK files lack. Names the model's SDK file lacks are simply not used."""
+    vmax_default, vmax_hi = m.velocity_limit
+    max_v, min_v, v_lo, v_hi = m.voltage
+    _d, i_gain, _p = m.gains
+    vi, vp = m.velocity_gains
+    rpm, tick = RAD_S_PER_VELOCITY_UNIT, RAD_PER_TICK
+    bauds = {c: BAUD_RATES[c] for c in m.baud_codes}
+    modes = {k: OPERATING_MODES[k] for k in m.modes}
+    amp = None if m.current_unit_ma is None else m.current_unit_ma / 1000
+    cl = m.current_limit
+    pos = ("rad", tick, CENTRE_TICK, True)
+    r: dict[str, tuple] = {
+        "model_number": ("R", m.number, 0, 65535),
+        "model_information": ("R", 0, 0, 2**32 - 1),
+        "firmware_version": ("R", m.firmware, 0, 255),
+        "id": ("RW", 1, 0, 252),
+        "baud_rate": ("RW", 1, min(bauds), max(bauds), "bps", 1.0, 0, False, bauds),
+        "return_delay_time": ("RW", 250, 0, 254, "s", 2e-6),
+        "drive_mode": ("RW", 0, 0, 13),
+        "operating_mode": ("RW", 3, 0, 16, "", 1.0, 0, False, modes),
+        "secondary_id": ("RW", 255, 0, 255),
+        "protocol_type": ("RW", 2, 1, 2),
+        "homing_offset": ("RW", 0, -1_044_479, 1_044_479, "rad", tick, 0, True),
+        "moving_threshold": ("RW", 10, 0, 1023, "rad/s", rpm),
+        "temperature_limit": ("RW", m.temperature_limit, 0, 100, "°C"),
+        "max_voltage_limit": ("RW", max_v, v_lo, v_hi, "V", 0.1),
+        "min_voltage_limit": ("RW", min_v, v_lo, v_hi, "V", 0.1),
+        "pwm_limit": ("RW", 885, 0, 885, "", 1 / 885),
+        "velocity_limit": ("RW", vmax_default, 0, vmax_hi, "rad/s", rpm),
+        "max_position_limit": ("RW", 4095, 0, 4095, "rad", tick, CENTRE_TICK),
+        "min_position_limit": ("RW", 0, 0, 4095, "rad", tick, CENTRE_TICK),
+        "shutdown": ("RW", 52, 0, 255),
+        "torque_enable": ("RW", 0, 0, 1),
+        "led": ("RW", 0, 0, 1),
+        "status_return_level": ("RW", 2, 0, 2),
+        "registered_instruction": ("R", 0, 0, 1),
+        "hardware_error_status": ("R", 0, 0, 255),
+        "velocity_i_gain": ("RW", vi, 0, 16383),
+        "velocity_p_gain": ("RW", vp, 0, 16383),
+        "position_d_gain": ("RW", s.position_d_gain, 0, 16383),
+        "position_i_gain": ("RW", i_gain, 0, 16383),
+        "position_p_gain": ("RW", s.position_p_gain, 0, 16383),
+        "feedforward_2nd_gain": ("RW", 0, 0, 16383),
+        "feedforward_1st_gain": ("RW", 0, 0, 16383),
+        "bus_watchdog": ("RW", 0, 0, 127, "s", 0.02),
+        "goal_pwm": ("RW", 0, -885, 885, "", 1 / 885, 0, True),
+        "goal_velocity": ("RW", 0, -vmax_hi, vmax_hi, "rad/s", rpm, 0, True),
+        "profile_acceleration": ("RW", 0, 0, 32767, "rad/s²", _PROFILE_ACC_RAD_S2),
+        "profile_velocity": ("RW", 0, 0, 32767, "rad/s", rpm),
+        "goal_position": ("RW", 0, -1_048_575, 1_048_575, *pos),
+        "realtime_tick": ("R", 0, 0, 32767, "s", 1e-3),
+        "moving": ("R", 0, 0, 1),
+        "moving_status": ("R", 0, 0, 255),
+        "present_pwm": ("R", 0, -885, 885, "", 1 / 885, 0, True),
+        "present_load": ("R", 0, -1000, 1000, "", 0.001, 0, True),
+        "present_velocity": ("R", 0, -2**31, 2**31 - 1, "rad/s", rpm, 0, True),
+        "present_position": ("R", CENTRE_TICK, -2**31, 2**31 - 1, *pos),
+        "velocity_trajectory": ("R", 0, -2**31, 2**31 - 1, "rad/s", rpm, 0, True),
+        "position_trajectory": ("R", 0, -2**31, 2**31 - 1, *pos),
+        "present_input_voltage": ("R", (max_v + min_v) // 2, 0, 65535, "V", 0.1),
+        "present_temperature": ("R", 30, 0, 255, "°C"),
+    }
+    if amp is not None:
+        r["current_limit"] = ("RW", cl, 0, cl, "A", amp)
+        r["goal_current"] = ("RW", 0, -cl, cl, "A", amp, 0, True)
+        r["present_current"] = ("R", 0, -32768, 32767, "A", amp, 0, True)
+    if m.pwm_slope is not None:
+        r["pwm_slope"] = ("RW", m.pwm_slope[0], 1, 255, "V/s", m.pwm_slope[1])
+    for n in (1, 2, 3):  # XM540/XH540/XD540 (e-Manual: mode 0…3, factory 3; data raw, meaning set by the mode)
+        r[f"external_port_mode_{n}"] = ("RW", 3, 0, 3)
+        r[f"external_port_data_{n}"] = ("RW", 0, 0, 65535)
+    for name, value in m.extra.items():
+        r[name] = (r[name][0], value, *r[name][2:])
+    return r
 
 
-CONTROL_TABLES: dict[str, ControlTable] = {
-    "XL330-M288-T": _table("XL330-M288-T", firmware=52, current_unit_ma=1.0, baud_codes=range(0, 7),
-                           modes=(0, 1, 3, 4, 5, 16), voltage=(70, 35, 31, 70), temperature_limit=70,
-                           velocity_limit=(445, 2047), current_limit=1750, gains=(0, 0, 400),
-                           velocity_gains=(1000, 180), indirect=20),
-    "XL430-W250-T": _table("XL430-W250-T", firmware=46, current_unit_ma=None, baud_codes=range(0, 8),
-                           modes=(1, 3, 4, 16), voltage=(140, 60, 60, 140), temperature_limit=72,
-                           velocity_limit=(265, 1023), current_limit=None, gains=(4000, 0, 640),
-                           velocity_gains=(1000, 100), indirect=28),
-    "XM430-W350-T": _table("XM430-W350-T", firmware=46, current_unit_ma=2.69, baud_codes=range(0, 8),
-                           modes=(0, 1, 3, 4, 5, 16), voltage=(160, 95, 95, 160), temperature_limit=80,
-                           velocity_limit=(200, 1023), current_limit=1193, gains=(0, 0, 800),
-                           velocity_gains=(1920, 100), indirect=28),
-}
+def _item(name: str, addr: int, size: int, rule: tuple) -> Item:
+    access, default, lo, hi, *rest = rule
+    unit, scale, offset, signed, values = (*rest, *("", 1.0, 0, False, None)[len(rest):])
+    return Item(name, addr, size, access, default, lo, hi, unit, scale, offset, signed,
+                dict(values) if values is not None else None)
+
+
+def _table(m: ModelSpec) -> ControlTable:
+    """One model's table: the SDK file's rows (address, size, name) typed by `_rules`, Indirect Address/Data
+    expanded to the model's entry count."""
+    rules = _rules(m, SERVOS[m.name])
+    items: list[Item] = []
+    indirect_address = indirect_data = None
+    for addr, size, sdk_name in sdk_items(m.sdk_file):
+        if sdk_name in _SDK_ALIASES:
+            continue
+        if sdk_name == "Indirect Address 1":
+            indirect_address = addr
+            continue
+        if sdk_name == "Indirect Data 1":
+            indirect_data = addr
+            continue
+        name = _SDK_NAMES.get(sdk_name, normalize_name(sdk_name))
+        if name not in rules:
+            raise ParameterError(f"{m.sdk_file}: item {sdk_name!r} has no typed rule in felis (controltable._rules)")
+        items.append(_item(name, addr, size, rules[name]))
+    indirect = None
+    if indirect_address is not None and indirect_data is not None and m.indirect:
+        a0, d0, count = indirect_address, indirect_data, m.indirect
+        lo, hi = INDIRECT_TARGETS
+        items += [Item(f"indirect_address_{n}", a0 + 2 * (n - 1), 2, "RW", d0 + n - 1, lo, hi)
+                  for n in range(1, count + 1)]
+        items += [Item(f"indirect_data_{n}", d0 + n - 1, 1, "RW", 0, 0, 255) for n in range(1, count + 1)]
+        indirect = (a0, d0, count)
+    return ControlTable(m.name, m.number, {it.name: it for it in items},
+                        dict(rules["baud_rate"][8]), dict(rules["operating_mode"][8]), indirect=indirect)
+
+
+CONTROL_TABLES: dict[str, ControlTable] = {m.name: _table(m) for m in MODELS}
 _BY_NUMBER = {t.model_number: t for t in CONTROL_TABLES.values()}
 
 
-
 def shared_item(*names: str) -> Item:
-    """The item that every model here has at one address and size, under one of ``names`` (alternatives: the
-    XL430 has Present Load where the others have Present Current). Code that addresses servos without
-    knowing their model (group reads and writes, the emulator's hot path) takes addresses from here, by
-    name, rather than as numbers. ParameterError if no model has it or the models disagree."""
+    """The item that every model having it has at one address and size, under one of ``names`` (alternatives:
+    the XL430 has Present Load where the others have Present Current; the XW series has no LED). Code that
+    addresses servos without knowing their model (group reads and writes, the emulator's hot path) takes
+    addresses from here, by name, rather than as numbers. ParameterError if no model has it or the models disagree."""
     found = [t.items[n] for t in CONTROL_TABLES.values() for n in names if n in t.items]
     if not found or len({(it.addr, it.size) for it in found}) != 1:
         raise ParameterError(f"control-table item {' / '.join(names)} is not at one address in every model")
@@ -310,18 +340,36 @@ STATE_BLOCK = span(("present_current", "present_load"), "present_position")
 
 
 def control_table(model: str | int) -> ControlTable:
-    """The table for a model name (``"XL330-M288-T"``) or Model Number (``1200``)."""
-    table = _BY_NUMBER.get(model) if isinstance(model, int) else CONTROL_TABLES.get(model)
+    """The table for a model name (``"XL330-M288-T"``; case and the ``-T``/``-R`` suffix are free) or Model
+    Number (``1200``). An unsupported model is a ParameterError of one line naming it (`unsupported`)."""
+    if isinstance(model, int):
+        table = _BY_NUMBER.get(model)
+    else:
+        table = CONTROL_TABLES.get(model) or CONTROL_TABLES.get(canonical_name(model) or "")
     if table is None:
-        known = ", ".join(f"{t.model} ({t.model_number})" for t in CONTROL_TABLES.values())
-        raise ParameterError(f"unknown Dynamixel model {model!r}; known: {known}")
+        raise ParameterError(unsupported(model))
     return table
 
 
+def unsupported(model: str | int) -> str:
+    """One line on a model felis has no table for: its number or name, what the SDK calls it, where to look."""
+    where = f"felis supports {len(CONTROL_TABLES)} Protocol 2.0 X-series models (docs/servos.md, `felis.servos.SERVOS`)"
+    if isinstance(model, int):
+        sdk = sdk_model_files().get(model)
+        if sdk is not None:
+            return f"Dynamixel Model Number {model} ({sdk.removesuffix('.model')}) is not supported: {where}"
+        return f"unknown Dynamixel Model Number {model}: not in dynamixel-sdk's dynamixel.model either; {where}"
+    return f"unknown Dynamixel model {model!r}: {where}"
+
+
 def model_name(model_number: int) -> str:
-    """Model name for a Model Number, or ``"unknown (N)"``."""
+    """Model name for a Model Number, or ``"unknown (N)"`` (``"unsupported mx_28 (30)"`` for a model the SDK
+    knows and felis does not)."""
     t = _BY_NUMBER.get(model_number)
-    return t.model if t else f"unknown ({model_number})"
+    if t:
+        return t.model
+    sdk = sdk_model_files().get(model_number)
+    return f"unsupported {sdk.removesuffix('.model')} ({model_number})" if sdk else f"unknown ({model_number})"
 
 
 decode_hardware_error = hardware_error_names

@@ -17,6 +17,7 @@ import sys
 from felis.cli import output
 from felis.cli.args import baud_rate, bus_args, dry_run, id_list, json_option, open_bus, servo_command
 from felis.drivers.dynamixel.bus import SDK_BAUDS
+from felis.drivers.dynamixel.controltable import unsupported
 from felis.errors import CommError, ParameterError
 from felis.servos import hardware_error_names
 
@@ -131,11 +132,19 @@ INFO_ITEMS = ("model_number", "firmware_version", "id", "baud_rate", "return_del
               "present_input_voltage", "present_temperature")
 
 
+def _table(bus, dxl_id: int):
+    """The servo's control table; a model felis has no table for is one line naming its Model Number."""
+    try:
+        return bus.table(dxl_id)
+    except ParameterError:
+        raise ParameterError(f"servo {dxl_id}: {unsupported(bus.ping(dxl_id).model_number)}") from None
+
+
 def cmd_info(args) -> int:
     with open_bus(args) as ports:
         bus = ports.bus
         found = bus.ping(args.id)
-        table = bus.table(args.id)
+        table = _table(bus, args.id)
         rows = []
         for name in INFO_ITEMS:
             if name not in table.items:
@@ -163,7 +172,7 @@ def cmd_info(args) -> int:
 def cmd_read(args) -> int:
     with open_bus(args) as ports:
         bus = ports.bus
-        it = bus.item(args.id, args.item)
+        it = _table(bus, args.id).item(args.item)
         raw = it.decode(bus.read_raw(args.id, it.addr, it.size))
     value = raw if args.raw else it.to_si(raw)
     obj = {"id": args.id, "item": it.name, "raw": raw, "value": value, "unit": "" if args.raw else it.unit}
@@ -187,7 +196,7 @@ def cmd_write(args) -> int:
             raise ParameterError(f"--raw needs an integer (e.g. 2048 or 0x800), got {args.value!r}") from None
     with open_bus(args) as ports:
         bus = ports.bus
-        it = bus.item(args.id, args.item)
+        it = _table(bus, args.id).item(args.item)
         if it.values is not None and not args.raw and isinstance(value, float):
             value = int(value) if value.is_integer() else value
         raw = bus.write(args.id, args.item, value, raw=args.raw, dry_run=args.dry_run)
