@@ -4,7 +4,8 @@ Two comparisons, one mechanism (`Difference` rows, printed as a table, applied o
 
 * **Settings** (`check_settings`), run when a robot connects (`felis run --backend dxl`,
   `felis check-eeprom`): Return Delay Time 0 (the factory 500 µs costs 6 ms per 12-servo read),
-  Operating Mode 3 (position: what `DynamixelRobot` drives), Drive Mode 0 (direction is applied on the
+  Operating Mode (the joint's, from the description: 3 position, 4 extended position, 5 current-based
+  position, as `DynamixelRobot` drives it), Drive Mode 0 (direction is applied on the
   host, from the description), Min/Max Position Limit (the calibrated range, else the description's
   limits), Shutdown 52 (overheating, electrical shock, overload: the factory mask the loop's hardware
   error handling expects) and Baud Rate (the robot's rate).
@@ -65,8 +66,9 @@ def expected_settings(spec: RobotSpec, baud: int, cal: CalibrationFile | None = 
             lo, hi = cal.joints[j.name].range
         else:
             lo, hi = description_ticks(j)
-        out[j.name] = {"return_delay_time": 0, "operating_mode": 3, "drive_mode": 0, "min_position_limit": lo,
-                       "max_position_limit": hi, "shutdown": SHUTDOWN_MASK, "baud_rate": baud_code(table, baud)}
+        out[j.name] = {"return_delay_time": 0, "operating_mode": j.operating_mode, "drive_mode": 0,
+                       "min_position_limit": lo, "max_position_limit": hi, "shutdown": SHUTDOWN_MASK,
+                       "baud_rate": baud_code(table, baud)}
     return out
 
 

@@ -52,6 +52,13 @@ class JointSpec:
     zero: float = 0.0  # servo angle (rad, around tick 2048) at q = 0
     m_per_rad: float = 1.0  # transmission; 1 for revolute joints
     max_velocity: float = 0.0  # rad/s (m/s); filled from the servo's no-load speed if not given
+    # The servo's firmware controller (`felis.drivers.virtual.horn`): Operating Mode 3 (position), 4 (extended
+    # position) or 5 (current-based position); Position P/I/D Gain and Feedforward 1st/2nd Gain (control-table
+    # units; None = the model's factory value); Goal Current (A) capping the torque in mode 5 (None: Current Limit).
+    operating_mode: int = 3
+    pid: tuple[int | None, int | None, int | None] = (None, None, None)
+    feedforward: tuple[int | None, int | None] = (None, None)
+    goal_current: float | None = None
 
 
 @dataclass(frozen=True)
@@ -127,7 +134,10 @@ ROBOTS_DIR = resources.files("felis") / "robots"
 _TOP_KEYS = {"schema", "name", "description", "model", "rate_hz", "joints", "joint", "sensors",
              "links", "poses"}
 _JOINT_KEYS = {"id", "servo", "range", "range_deg", "group", "kind", "direction", "zero",
-               "m_per_rad", "max_velocity"}
+               "m_per_rad", "max_velocity", "operating_mode", "pid", "feedforward", "goal_current"}
+OPERATING_MODES = {3: "position", 4: "extended position", 5: "current-based position"}  # what a joint may run
+EXTENDED_TURNS = 256  # extended position mode: ±256 turns
+GAIN_MAX = 16383
 _SENSOR_KEYS = {"imu", "contacts", "height"}
 
 
@@ -278,14 +288,26 @@ class _Validator:
         if m_per_rad <= 0:
             raise self.fail(f"{where}.m_per_rad", f"must be positive, got {m_per_rad}")
         model = servo_model(servo)
+        mode = self.get(t, "operating_mode", int, where, 3)
+        if mode not in OPERATING_MODES:
+            raise self.fail(f"{where}.operating_mode", f"{mode} is not a position mode the HAL drives; use "
+                            + ", ".join(f"{k} ({v})" for k, v in OPERATING_MODES.items()))
+        pid = self.gains(t, "pid", 3, where)
+        ff = self.gains(t, "feedforward", 2, where)
+        goal_current = self.get(t, "goal_current", float, where, None)
+        if goal_current is not None and (mode != 5 or goal_current <= 0):
+            raise self.fail(f"{where}.goal_current", "a positive current (A), only in operating_mode 5"
+                            if mode == 5 else "applies to operating_mode 5 (current-based position) only")
         s_lo, s_hi = sorted((direction * lo / m_per_rad + zero, direction * hi / m_per_rad + zero))
         span_lo, span_hi = model.position_range
+        if mode == 4:
+            span_lo, span_hi = -EXTENDED_TURNS * 2 * math.pi, EXTENDED_TURNS * 2 * math.pi
         eps = 1e-9
         if s_lo < span_lo - eps or s_hi > span_hi + eps:
             raise self.fail(
                 f"{where}.{'range_deg' if has_deg else 'range'}",
                 f"maps to servo angles {s_lo:.3f}…{s_hi:.3f} rad, outside what a {servo} covers in "
-                f"position mode ({span_lo:.3f}…{span_hi:.3f} rad around its zero)",
+                f"operating mode {mode} ({span_lo:.3f}…{span_hi:.3f} rad around its zero)",
             )
         vmax_servo = model.no_load_speed * m_per_rad
         vmax = self.get(t, "max_velocity", float, where, vmax_servo)
@@ -294,7 +316,19 @@ class _Validator:
                             f"{vmax} outside 0…{vmax_servo:.3f} (the {servo}'s no-load speed)")
         group = self.get(t, "group", str, where)
         return JointSpec(name=jname, servo_id=sid, servo=servo, lower=lo, upper=hi, group=group, kind=kind,
-                         direction=direction, zero=zero, m_per_rad=m_per_rad, max_velocity=vmax)
+                         direction=direction, zero=zero, m_per_rad=m_per_rad, max_velocity=vmax, operating_mode=mode,
+                         pid=pid, feedforward=ff, goal_current=goal_current)
+
+    def gains(self, t: dict, key: str, n: int, where: str) -> tuple:
+        """``key = [g1, …]``: n control-table gains (0…16383), or absent: (None,)*n (the factory values)."""
+        if key not in t:
+            return (None,) * n
+        value = t[key]
+        if (not isinstance(value, list) or len(value) != n
+                or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= GAIN_MAX for v in value)):
+            raise self.fail(f"{where}.{key}", f"expected {n} integer gains 0…{GAIN_MAX} (control-table units), "
+                            f"got {value!r}")
+        return tuple(value)
 
     def sensors(self, t: Any) -> SensorSpec:
         if not isinstance(t, dict):

@@ -2,13 +2,20 @@
 
 Physics runs at the model's timestep (1 kHz in the shipped models); ``advance(dt)`` steps
 ``round(dt / timestep)`` times in one native call. Each actuated joint of the description is a
-position actuator of the same name in the MJCF; its gains come from the servo model
-(`felis.sim.servo`), so description and servo datasheet stay the one source.
+position actuator of the same name in the MJCF (its P term and D gain); the rest of the servo's firmware
+controller (`felis.sim.servo.controller`: the description's operating mode and gains) is added at load
+where the joint needs it: ``<joint>_i`` (MuJoCo's ``pid`` actuator, the integral, when I > 0) and
+``<joint>_ff`` (the feedforward torque, when D or a feedforward gain > 0), the joint's total actuator force
+clamped at the PWM limit's torque (mode 5: Goal Current's). All of it runs inside the physics step.
+Velocity limits (``Command.dq_max``) start the firmware's profile generator (a rectangular velocity
+profile at dq_max, `felis.sim.servo.Profile`); while a profile runs, the physics is stepped one step at a
+time with the desired position, velocity and acceleration at the physics rate.
 
-Torque off (connected, or ``Command.torque`` False) zeroes the actuator's gain and bias: the joint
-is then moved only by gravity, contacts, back-EMF damping and friction, like an unpowered servo.
+Torque off (connected, or ``Command.torque`` False) zeroes every gain: the joint
+is then moved only by gravity, contacts, back-EMF damping and friction, like an unpowered servo; the
+integral restarts from zero when torque comes back.
 Readings are quantised like the servo's (4096 ticks per turn, 0.229 rpm), ``effort`` is the motor
-torque (actuator force minus back-EMF), ``height`` is the waist site's height above the floor.
+torque (the actuators' force on the joint minus back-EMF), ``height`` is the waist site's height above the floor.
 ``fixed_base=True`` hangs a floating-base robot on a stand (free joint removed, body lifted), as for
 system identification (`felis.calib.sysid`).
 """
@@ -27,7 +34,16 @@ from felis.bodymodel import low_matrix
 from felis.errors import FelisError, ModelMismatch, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State, Truth
 from felis.servos import servo_model
-from felis.sim.servo import ServoParams, quantization_steps, servo_params
+from felis.sim.servo import (
+    JointActuators,
+    Profile,
+    ServoParams,
+    add_controller,
+    configure_joint,
+    controller,
+    quantization_steps,
+    servo_params,
+)
 from felis.spec import RobotSpec
 
 MODELS_DIR = resources.files("felis.sim") / "models"
@@ -155,8 +171,21 @@ class MujocoRobot(RobotBase):
 
     # ------------------------------------------------------------------ connect / model checks
     def _connect(self) -> None:
-        m = load_model(self._model_file, fixed_base=self.fixed_base, edit=self._edit)
         spec = self.spec
+        self._ctl = [controller(j, self._servo_override.get(j.name)) for j in spec.joints]
+        needs = [(j.name, c.ki > 0, c.kd > 0 or c.kff1 > 0 or c.kff2 > 0) for j, c in zip(spec.joints, self._ctl,
+                                                                                          strict=True)]
+        user_edit = self._edit
+
+        def edit(ms: mujoco.MjSpec) -> None:
+            if user_edit is not None:
+                user_edit(ms)
+            for name, integral, ff in needs:
+                if integral or ff:
+                    add_controller(ms, name, integral=integral, feedforward=ff)
+
+        extra = any(i or f for _, i, f in needs)
+        m = load_model(self._model_file, fixed_base=self.fixed_base, edit=edit if extra else user_edit)
         self.model, self.data = m, mujoco.MjData(m)
         n = spec.n
         self._qadr = np.zeros(n, dtype=int)
@@ -188,15 +217,23 @@ class MujocoRobot(RobotBase):
                       for j in spec.joints}
         self._kp = np.array([self.servo[j.name].kp for j in spec.joints])
         self._damping = np.array([self.servo[j.name].damping for j in spec.joints])
+        self._acts = [JointActuators.find(m, j.name) for j in spec.joints]
         for i, j in enumerate(spec.joints):
             p, aid, dof = self.servo[j.name], self._act[i], self._dadr[i]
-            m.actuator_forcerange[aid] = (-p.torque_limit, p.torque_limit)
-            m.actuator_forcelimited[aid] = 1
             m.actuator_ctrlrange[aid] = (j.lower, j.upper)
             m.actuator_ctrllimited[aid] = 1
             m.dof_damping[dof] = p.damping
             m.dof_armature[dof] = p.armature
             m.dof_frictionloss[dof] = p.frictionloss
+        # the integral's setpoint follows the position actuator's; the feedforward torque is set per step
+        self._ictrl = np.array([m.actuator_ctrladr[a.integral] for a in self._acts if a.integral >= 0], dtype=int)
+        self._ipos = np.array([i for i, a in enumerate(self._acts) if a.integral >= 0], dtype=int)
+        self._iact = np.array([m.actuator_actadr[a.integral] for a in self._acts if a.integral >= 0], dtype=int)
+        self._fctrl = np.array([m.actuator_ctrladr[a.feedforward] for a in self._acts if a.feedforward >= 0], dtype=int)
+        self._fpos = np.array([i for i, a in enumerate(self._acts) if a.feedforward >= 0], dtype=int)
+        self._fgain = np.array([(c.kd + c.kff1, c.kff2) for c, a in zip(self._ctl, self._acts, strict=True)
+                                if a.feedforward >= 0]).reshape(-1, 2)
+        self._profiles: list[Profile] | None = None
         self._sensors(m)
         W = mujoco.mjtWarning
         self._divergence = [self.data.warning[w] for w in (W.mjWARN_BADQPOS, W.mjWARN_BADQVEL, W.mjWARN_BADQACC)]
@@ -211,9 +248,23 @@ class MujocoRobot(RobotBase):
             mujoco.mj_resetDataKeyframe(m, d, 0)
         self._goal = d.qpos[self._qadr].copy()
         self._dq_max = None
+        self._profiles = None
         self._t_target = d.time
-        d.ctrl[self._act] = self._goal
+        self._set_ctrl(self._goal)
         mujoco.mj_forward(m, d)
+
+    def _set_ctrl(self, q: np.ndarray, v: np.ndarray | None = None, a: np.ndarray | None = None) -> None:
+        """The controller's references: the position setpoint (position and integral actuators) and the
+        feedforward torque (kd + kff1)·v_d + kff2·a_d."""
+        c = self.data.ctrl
+        c[self._act] = q
+        if self._ictrl.size:
+            c[self._ictrl] = q[self._ipos]
+        if self._fctrl.size:
+            if v is None:
+                c[self._fctrl] = 0.0
+            else:
+                c[self._fctrl] = self._fgain[:, 0] * v[self._fpos] + self._fgain[:, 1] * a[self._fpos]
 
     def _sensor_for(self, m, stype, objtype, objid) -> int | None:
         for s in range(m.nsensor):
@@ -269,17 +320,23 @@ class MujocoRobot(RobotBase):
 
     # ------------------------------------------------------------------ torque
     def _set_torque(self, mask: np.ndarray) -> None:
-        """Torque on: the servo's gain; off: zero gain and bias (only damping and friction remain)."""
-        self._torque = np.array(mask, dtype=bool)
-        kp = np.where(self._torque, self._kp, 0.0)
-        self.model.actuator_gainprm[self._act, 0] = kp
-        self.model.actuator_biasprm[self._act, 1] = -kp
+        """Torque on: the servo's controller; off: every gain zero (only damping and friction remain). A joint
+        whose torque comes on starts its integral from zero, as the firmware does."""
+        new = np.array(mask, dtype=bool)
+        was = getattr(self, "_torque", np.zeros_like(new))
+        self._torque = new
+        for i, (acts, ctl) in enumerate(zip(self._acts, self._ctl, strict=True)):
+            configure_joint(self.model, acts, ctl, bool(new[i]))
+        if self._iact.size and self.data is not None:
+            turned_on = (new & ~was)[self._ipos] | ~new[self._ipos]
+            self.data.act[self._iact[turned_on]] = 0.0
 
     def _arm(self) -> None:
         d = self.data
         self._goal = d.qpos[self._qadr].copy()  # goal = present: no jump
-        d.ctrl[self._act] = self._goal
+        self._set_ctrl(self._goal)
         self._dq_max = None
+        self._profiles = None
         self._set_torque(np.ones(self.spec.n, dtype=bool))
 
     def _disarm(self) -> None:
@@ -291,7 +348,7 @@ class MujocoRobot(RobotBase):
         d = self.data
         q = d.qpos[self._qadr]  # fancy indexing: copies
         qvel = d.qvel[self._dadr]
-        effort = d.actuator_force[self._act] - self._damping * qvel
+        effort = d.qfrc_actuator[self._dadr] - self._damping * qvel
         if self.quantize:  # whole encoder ticks and velocity units, as the servo reports them
             dq = np.rint(qvel * self._inv_vstep)
             dq *= self._vstep
@@ -337,7 +394,21 @@ class MujocoRobot(RobotBase):
         self._goal = q
         self._dq_max = None if command.dq_max is None else np.abs(np.asarray(command.dq_max, dtype=float))
         if self._dq_max is None:
-            self.data.ctrl[self._act] = q
+            self._profiles = None
+            self._set_ctrl(q)
+        else:  # the profile generator: a new profile from the desired state of the last one
+            t = float(self.data.time)
+            prev = self._profiles
+            profiles = []
+            for i in range(self.spec.n):
+                if prev is not None and prev[i].active(t):
+                    p0, v0, _ = prev[i].sample(t)
+                else:
+                    p0, v0 = float(self.data.ctrl[self._act[i]]), 0.0
+                vmax = float(self._dq_max[i])
+                profiles.append(Profile.move(t, p0, v0, float(q[i]), vmax if math.isfinite(vmax) and vmax > 0
+                                             else math.inf, math.inf))
+            self._profiles = profiles
         return Command(q=q, dq_max=command.dq_max, torque=torque)
 
     def _advance(self, dt: float) -> None:
@@ -347,11 +418,21 @@ class MujocoRobot(RobotBase):
         nstep = int(round((self._t_target - d.time) / m.opt.timestep))
         if nstep <= 0:
             return
-        if self._dq_max is not None:  # profile velocity: move the actuator target at most dq_max·dt
-            cur = d.ctrl[self._act]
-            lim = self._dq_max * dt
-            d.ctrl[self._act] = cur + np.clip(self._goal - cur, -lim, lim)
-        if self.substep_hook is None:
+        profiles = self._profiles
+        if profiles is not None and not any(p.active(d.time) for p in profiles):
+            self._profiles = profiles = None
+            self._set_ctrl(self._goal)
+        if profiles is not None:  # the profile generator at the physics rate (module doc)
+            n = self.spec.n
+            ref = np.empty((3, n))
+            for _ in range(nstep):
+                for i, p in enumerate(profiles):
+                    ref[:, i] = p.sample(d.time)
+                self._set_ctrl(ref[0], ref[1], ref[2])
+                mujoco.mj_step(m, d)
+                if self.substep_hook is not None:
+                    self.substep_hook(m, d)
+        elif self.substep_hook is None:
             mujoco.mj_step(m, d, nstep)
         else:
             for _ in range(nstep):

@@ -15,7 +15,11 @@ so the servo is modelled as
 * ``armature`` (reflected rotor inertia) and ``frictionloss`` (gear friction), rough datasheet-scale
   values that system identification refines.
 
-The D and I terms and the profile generator are not modelled (factory D/I are 0 on XL330/XM430).
+The rest of the firmware's controller (I, D, feedforward, the profile generator, modes 3/4/5 and 1) is
+`felis.drivers.virtual.horn`'s, one implementation for the MuJoCo robots and the virtual bus's standalone
+servos: ``kp`` here is its P term (what system identification fits), `controller` gives the whole
+controller of a description's joint, `add_controller` / `configure_joint` put it into a model as MuJoCo
+actuators (the integral through MuJoCo's ``pid`` actuator) that run inside the physics step.
 For a prismatic joint driven through a transmission ``r`` (m per rad of horn): force = τ/r, so
 ``kp/r²``, ``τ_stall/r``, ``damping/r²`` and ``armature/r²``.
 Readings are quantised as the servo reports them: positions to 4096 ticks per turn, velocities to
@@ -29,11 +33,25 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from felis.servos import PWM_LIMIT, RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, TICKS_PER_REV, ServoModel
+from felis.drivers.virtual.horn import (
+    ARMATURE,
+    FRICTION,
+    Controller,
+    Gains,
+    JointActuators,
+    Profile,
+    add_controller,
+    configure_joint,
+    factory_current_limit,
+    position_controller,
+    profile_for,
+)
+from felis.servos import PWM_LIMIT, RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, TICKS_PER_REV, ServoModel, servo_model
+from felis.spec import JointSpec
 
-# Rough reflected rotor inertia (kg·m²) and gear friction (N·m) per model, refined by sysid.
-_ARMATURE = {"XL330-M288-T": 5e-4, "XL430-W250-T": 5e-3, "XM430-W350-T": 1e-2}
-_FRICTION = {"XL330-M288-T": 0.005, "XL430-W250-T": 0.01, "XM430-W350-T": 0.02}
+_ARMATURE, _FRICTION = ARMATURE, FRICTION
+__all__ = ["Controller", "Gains", "JointActuators", "Profile", "ServoParams", "add_controller", "configure_joint",
+           "controller", "joint_gains", "kp_from_gain", "profile_for", "quantization_steps", "servo_params"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +63,9 @@ class ServoParams:
     damping: float  # N·m·s/rad: joint damping (back-EMF)
     armature: float  # kg·m²: joint armature (reflected rotor inertia)
     frictionloss: float  # N·m: joint dry friction
+    # Position P/I/D Gain (control-table units) the servo runs, e.g. fitted by sysid; None: the description's.
+    # When given, the controller's P, I and D come from it (``kp`` should then be P's stiffness, `kp_from_gain`).
+    pid: tuple[float, float, float] | None = None
 
     def through(self, m_per_rad: float) -> ServoParams:
         """The same servo seen through a transmission of ``m_per_rad`` (prismatic joint)."""
@@ -82,3 +103,31 @@ def quantization_steps(m_per_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     m = np.asarray(m_per_rad, dtype=float)
     return RAD_PER_TICK * m, RAD_S_PER_VELOCITY_UNIT * m
+
+
+def joint_gains(joint: JointSpec) -> Gains:
+    """The description's Position P/I/D and Feedforward gains, the model's factory values where not given."""
+    f = Gains.factory(joint.servo)
+    given = (*joint.pid, *joint.feedforward)
+    return Gains(*(float(g) if g is not None else d for g, d in zip(given, (f.p, f.i, f.d, f.ff1, f.ff2), strict=True)))
+
+
+def controller(joint: JointSpec, params: ServoParams | None = None) -> Controller:
+    """The firmware controller of a description's joint, in joint units (rad or m): its gains (`joint_gains`),
+    operating mode (5: capped at Goal Current's torque, default the Current Limit), through the transmission.
+    ``params`` (e.g. fitted by sysid) overrides kp and the torque limit (before the mode-5 cap), and with its
+    ``pid`` the P, I and D gains (then kp is P's)."""
+    servo = servo_model(joint.servo)
+    cap = None
+    if joint.operating_mode == 5:
+        cap = joint.goal_current if joint.goal_current is not None else factory_current_limit(joint.servo)
+    gains = joint_gains(joint)
+    if params is not None and params.pid is not None:
+        gains = replace(gains, p=float(params.pid[0]), i=float(params.pid[1]), d=float(params.pid[2]))
+    ctl = position_controller(servo, gains, current_limit_a=cap).through(joint.m_per_rad)
+    if params is not None:
+        limit = min(params.torque_limit, ctl.torque_limit) if joint.operating_mode == 5 else params.torque_limit
+        kp = ctl.kp if params.pid is not None else params.kp
+        ctl = Controller(kp, ctl.ki, ctl.kd, ctl.kff1, ctl.kff2, limit)
+    return ctl
+

@@ -70,8 +70,8 @@ def virtual_bus(spec_or_name: RobotSpec | str, *, baud: int = 1_000_000, sim: bo
                 servo_params: Mapping[str, object] | None = None, fixed_base: bool = False,
                 imu_mount: Sequence[float] | None = None, imu_drift: Sequence[float] | None = None,
                 drop: Sequence[float] | None = None) -> VirtualBus:
-    """`VirtualBus.for_robot` (one servo per joint, set up as a calibrated robot's), with ``sim=True`` backed by
-    the MuJoCo model (and the cat's IMU on ``bus.imu_port`` when started).
+    """`VirtualBus.for_robot` (one servo per joint, set up as a calibrated robot's, in the description's operating
+    mode), with ``sim=True`` backed by the MuJoCo model (and the cat's IMU on ``bus.imu_port`` when started).
 
     ``mount_offsets`` (joint -> rad) simulates an uncalibrated assembly. With ``sim=True``,
     ``servo_params`` (joint -> `felis.sim.servo.ServoParams`) replaces the datasheet servo model of
@@ -99,8 +99,12 @@ def virtual_bus(spec_or_name: RobotSpec | str, *, baud: int = 1_000_000, sim: bo
     def backend(bus: VirtualBus) -> MujocoBackend:
         return MujocoBackend(bus, servo_params=servo_params, fixed_base=fixed_base, drop=drop)
 
-    return VirtualBus.for_robot(spec, baud=baud, wire_time=wire_time, faults=faults, seed=seed,
-                                mount_offsets=mount_offsets, backend=backend if sim else None, imu_mount=mount)
+    bus = VirtualBus.for_robot(spec, baud=baud, wire_time=wire_time, faults=faults, seed=seed,
+                               mount_offsets=mount_offsets, backend=backend if sim else None, imu_mount=mount)
+    for j, s in zip(spec.joints, bus.servos, strict=True):  # as a set-up robot holds it (felis check-eeprom)
+        if s.get("operating_mode") != j.operating_mode:
+            s.set("operating_mode", j.operating_mode)
+    return bus
 
 
 def bus_from_options(options: Mapping[str, object]) -> VirtualBus:

@@ -28,6 +28,12 @@ last command and counts it). IMU (``imu_port``): each tick's
 tick); when the sensor has gone quiet (no frame for ``IMU_MAX_AGE_S``) or its port failed, ``State.imu`` is
 None rather than a frozen reading: a controller never steers by an orientation that stopped updating.
 
+Operating mode and gains: every joint's servo must be in the description's operating mode (3 position,
+4 extended position, 5 current-based position; an EEPROM item, fixed with `felis check-eeprom`); connect
+writes the description's Position P/I/D Gain and Feedforward 1st/2nd Gain (RAM; the model's factory values
+where the description gives none) and, in mode 5, Goal Current (default: the Current Limit), and reads them
+back.
+
 ``arm()`` reads the present positions, writes them as goals, then enables torque and reads Torque
 Enable back: no jump at start-up, and a servo that refuses torque (hardware-error shutdown) is an
 error naming it. Torque goes off on ``disarm()``, ``close()`` and on any unhandled exception, and is
@@ -63,6 +69,7 @@ _HW_ERROR = address("hardware_error_status")
 _BUS_WATCHDOG = address("bus_watchdog")
 _HOMING_OFFSET = address("homing_offset")
 _OPERATING_MODE = address("operating_mode")
+_GAIN_ITEMS = ("position_p_gain", "position_i_gain", "position_d_gain", "feedforward_1st_gain", "feedforward_2nd_gain")
 _BLOCK_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 # what one tick reads per servo, gathered by Indirect Addressing: addresses in order, then the layout
 TICK_ITEMS = (_TORQUE_ENABLE, _HW_ERROR, _BUS_WATCHDOG, *range(STATE_BLOCK[0], STATE_BLOCK[0] + STATE_BLOCK[1]))
@@ -190,11 +197,13 @@ class DynamixelRobot(RobotBase):
         if wrong:
             raise DescriptionError(self.spec.source, "servo", "; ".join(wrong))
         modes = bus.sync_read(self.ids, _OPERATING_MODE, 1, fast=False, retries=2)
-        not_position = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints
-                        if modes.data[j.servo_id] is not None and modes.data[j.servo_id][0] != 3]
-        if not_position:
-            raise CommError(f"servos not in position mode: {', '.join(not_position)}; fix: `felis torque off` then "
-                            "`felis write ID operating_mode position`")
+        wrong_mode = [f"{j.name} (ID {j.servo_id}) is in mode {modes.data[j.servo_id][0]}, the description says "
+                      f"{j.operating_mode}" for j in self.spec.joints
+                      if modes.data[j.servo_id] is not None and modes.data[j.servo_id][0] != j.operating_mode]
+        if wrong_mode:
+            raise CommError(f"servos in the wrong operating mode: {'; '.join(wrong_mode)}; fix: `felis check-eeprom "
+                            "--robot NAME` (writes it), or `felis torque off` then `felis write ID operating_mode N`")
+        self._write_controller()
         if self.calibration.homing is not None:
             res = bus.sync_read(self.ids, _HOMING_OFFSET, 4, fast=False, retries=2)
             held = {i: int.from_bytes(b, "little", signed=True) for i, b in res.data.items() if b is not None}
@@ -215,6 +224,25 @@ class DynamixelRobot(RobotBase):
             self._open_imu()
         self._t0 = time.monotonic()
         self._read_block(require_all=True)
+
+    def _write_controller(self) -> None:
+        """The description's controller gains (and Goal Current in mode 5) into each servo's RAM, read back."""
+        bus = self.bus
+        for j in self.spec.joints:
+            table = control_table(j.servo)
+            values = dict(zip(_GAIN_ITEMS, (*j.pid, *j.feedforward), strict=True))
+            want = {n: int(v if v is not None else table.item(n).default) for n, v in values.items()}
+            if j.operating_mode == 5 and "goal_current" in table.items:
+                item = table.item("goal_current")
+                amps = j.goal_current
+                want["goal_current"] = (round(amps / item.scale) if amps is not None
+                                        else int(table.item("current_limit").default))
+            for name, raw in want.items():
+                if bus.read(j.servo_id, name, raw=True) != raw:
+                    bus.write(j.servo_id, name, raw, raw=True)
+                    back = bus.read(j.servo_id, name, raw=True)
+                    if back != raw:
+                        raise CommError(f"{j.name} (ID {j.servo_id}): {name} reads {back} after writing {raw}")
 
     def _not_a_bus(self) -> None:
         """The first servo did not answer: is this port streaming something else (the IMU)?"""

@@ -2,7 +2,8 @@
 client writes, dispatches it and writes the replies (at once, or when the wire would deliver them),
 fault injection (`felis.drivers.virtual.faultplan`) and counters (`BusStats`).
 
-``VirtualBus.for_robot`` builds the servos of a robot description; a `HornBackend` may drive their horns
+``VirtualBus.for_robot`` builds the servos of a robot description, ``VirtualBus.for_models`` one servo of each
+given model (any supported X-series model); a `HornBackend` may drive their horns
 (servo-in-the-loop, `felis.sim.servo_in_loop`) and feed an emulated IMU on a second pty (`VirtualImu`).
 
 Wire
@@ -507,6 +508,15 @@ class VirtualBus:
 
     # -------------------------------------------------------------- robots
     @classmethod
+    def for_models(cls, models: Iterable[str | int], *, baud: int = 1_000_000, first_id: int = 1,
+                   **options) -> VirtualBus:
+        """One standalone servo per entry of ``models`` (names or Model Numbers, any supported model), IDs
+        ``first_id``, ``first_id + 1``, … in order, at ``baud``; ``options`` as for the constructor. An
+        unsupported model is a one-line ParameterError naming it."""
+        servos = [VirtualServo(m, first_id + k, baud) for k, m in enumerate(models)]
+        return cls(servos, **options)
+
+    @classmethod
     def for_robot(cls, spec_or_name: RobotSpec | str, *, baud: int = 1_000_000, wire_time: bool = False,
                   faults: FaultPlan | str | None = None, seed: int = 0,
                   mount_offsets: Mapping[str, float] | None = None, backend: BackendFactory | None = None,
@@ -529,6 +539,7 @@ class VirtualBus:
             mount = Mount(j.direction, j.zero, j.m_per_rad, float(offsets.get(j.name, 0.0)))
             s = VirtualServo(j.servo, j.servo_id, baud, mount=mount)
             s.set("return_delay_time", 0)
+            s.set("operating_mode", j.operating_mode)  # EEPROM as a set-up robot has it (felis check-eeprom)
             limits = sorted(CENTRE + round(Mount(j.direction, j.zero, j.m_per_rad).horn(q) / RAD_PER_TICK)
                             for q in (j.lower, j.upper))  # as a set-up robot holds them (felis check-eeprom)
             s.set("min_position_limit", max(0, limits[0]))

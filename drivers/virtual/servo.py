@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable
 
 from felis.drivers.dynamixel import protocol as P
 from felis.drivers.dynamixel.controltable import BAUD_RATES, control_table
-from felis.drivers.virtual.horn import CENTRE, I32, U16, HornModel, Mount
+from felis.drivers.virtual.horn import CENTRE, I32, U16, HornModel, Mount, _Standalone
 from felis.drivers.virtual.instructions import Instructions
 from felis.drivers.virtual.memory import (
     BAUD,
@@ -40,7 +40,7 @@ from felis.drivers.virtual.memory import (
     hardware_bits,
 )
 from felis.errors import ParameterError
-from felis.servos import SERVOS, STALL_CURRENT_A
+from felis.servos import emulated
 
 TEMPERATURE_C = 32
 _CACHED = frozenset((DRIVE_MODE, HOMING_OFFSET, MOVING_THRESHOLD, POSITION_P))  # see VirtualServo._cache_settings
@@ -50,7 +50,8 @@ class VirtualServo(Instructions, HornModel):
     """One emulated X-series servo: control-table memory, instruction rules and dynamics (module doc).
 
     Args:
-        model: model name (``"XL330-M288-T"``) or Model Number.
+        model: model name (``"XL330-M288-T"``) or Model Number (``1190``): any model
+            `felis.drivers.dynamixel.controltable.CONTROL_TABLES` holds; another is a one-line ParameterError.
         id: servo ID (0…252).
         baud_bps: the baud rate it listens at (one of the model's Baud Rate codes).
         firmware: Firmware Version (default: the control table's).
@@ -65,7 +66,7 @@ class VirtualServo(Instructions, HornModel):
                  mount: Mount | None = None, clock: Callable[[], float] = time.perf_counter):
         self.table = control_table(model)
         self.model = self.table.model
-        self.datasheet = SERVOS[self.model]
+        self.datasheet = emulated(self.model)  # datasheet figures, or a flagged stand-in's (felis.servos)
         if not 0 <= id <= P.MAX_ID:
             raise ParameterError(f"servo ID {id} outside 0…{P.MAX_ID}")
         baud_code = self._baud_code_for(baud_bps)
@@ -88,11 +89,12 @@ class VirtualServo(Instructions, HornModel):
         self._t = clock()
         self._t0 = self._t
         unit = self.table.items.get("present_current")  # None: Present Load (XL430)
-        self._kt = (self.datasheet.stall_torque / STALL_CURRENT_A[self.model]
-                    if self.model in STALL_CURRENT_A and unit is not None else None)
+        amps = self.datasheet.stall_current
+        self._kt = self.datasheet.stall_torque / amps if amps and unit is not None else None
         self._current_unit = unit.scale if unit is not None else None
         self.mem = bytearray()
         self._boot(self.table.defaults(), id, baud_code)
+        self._standalone = _Standalone(self.datasheet, self._t)  # made now: not on the first reply after torque on
 
     # -------------------------------------------------------------- memory
     def _baud_code_for(self, baud_bps: int) -> int:

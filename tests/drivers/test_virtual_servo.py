@@ -32,6 +32,8 @@ class FakeClock:
 
 
 def test_standalone_dynamics_follow_the_goal():
+    """The firmware's controller on the bare horn (`felis.drivers.virtual.horn`; its step responses, profiles and
+    modes are tested in tests/sim/test_servo_controller.py)."""
     clock = FakeClock()
     s = VirtualServo(XL330, 1, BAUD, clock=clock)
     vmax = SERVOS[XL330].no_load_speed
@@ -40,27 +42,21 @@ def test_standalone_dynamics_follow_the_goal():
     clock.t = 1.0
     assert s.get("present_position") == 2048  # torque off: the horn stays
     assert s.write(TORQUE, b"\x01") == 0
-    clock.t = 1.05  # rate-limited phase: v_max
-    assert s.angle == pytest.approx(vmax * 0.05)
-    assert s.get("present_velocity") == round(vmax / RAD_S_PER_VELOCITY_UNIT)
+    clock.t = 1.002
+    assert 0 < s.get("present_current") <= 1470  # saturated at the stall current at the start
+    clock.t = 1.1  # saturated: near the no-load speed
+    assert s.get("present_velocity") == pytest.approx(vmax / RAD_S_PER_VELOCITY_UNIT, rel=0.05)
     assert s.get("moving") == 1
-    assert s.get("present_current") == round(1470)  # error ≫ stall band: clipped at the stall current
     clock.t = 3.0
     assert s.get("present_position") == goal and s.get("moving") == 0
     assert s.get("present_velocity") == 0 and s.get("present_current") == 0
-    # Profile Velocity limits the speed
+    # Profile Velocity limits the speed (a rectangular profile; the P-only servo lags it by v·b/kp)
     assert s.write(PROFILE_VELOCITY, (100).to_bytes(4, "little")) == 0
     assert s.write(GOAL_POSITION, (2048).to_bytes(4, "little")) == 0
-    clock.t = 3.5
-    assert s.angle == pytest.approx(math.pi / 2 - 100 * RAD_S_PER_VELOCITY_UNIT * 0.5)
-    # first-order: from inside the band the error decays with τ = 50 ms
-    s.write(PROFILE_VELOCITY, bytes(4))
-    clock.t = 10.0
-    target = 0.2
-    s.write(GOAL_POSITION, (2048 + round(target / RAD_PER_TICK)).to_bytes(4, "little"))
-    start, goal_angle = s.angle, s.goal_angle()
-    clock.t += 0.05
-    assert goal_angle - s.angle == pytest.approx((goal_angle - start) * math.exp(-1))
+    clock.t = 3.3
+    v = 100 * RAD_S_PER_VELOCITY_UNIT
+    lag = v * (SERVOS[XL330].stall_torque / vmax) / s.firmware_controller().kp
+    assert s.angle == pytest.approx(math.pi / 2 - v * 0.3 + lag, abs=0.01)
     s.write(TORQUE, b"\x00")
     held = s.angle
     clock.t += 1.0
@@ -84,8 +80,8 @@ def test_xl430_reports_load():
     s = VirtualServo(XL430, 1, BAUD, clock=clock)
     s.write(GOAL_POSITION, (3000).to_bytes(4, "little"))
     s.write(TORQUE, b"\x01")
-    clock.t = 0.01
-    assert s.get("present_load") == 1000  # 100 % of stall
+    clock.t = 0.001
+    assert 900 <= s.get("present_load") <= 1000  # saturated: ≈ 100 % of stall, less the back-EMF once moving
 
 
 # ------------------------------------------------------------------------------------------- fuzzing
