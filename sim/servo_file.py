@@ -4,10 +4,15 @@ Format (JSON, SI units in joint coordinates: rad, or m for a prismatic joint)::
 
     {"schema": 1, "robot": "cat",
      "joints": {"fl_pitch": {"kp": 1.66, "torque_limit": 0.41, "damping": 0.034,
-                             "armature": 0.001, "frictionloss": 0.0075}, ...},
+                             "armature": 0.001, "frictionloss": 0.0075,
+                             "pid": [800, 100, 100]}, ...},       # optional: Position P/I/D Gain
+
      "fit": {...}}                      # optional: how the numbers were obtained (free-form)
 
-Joints not listed keep the datasheet model (`felis.sim.servo.servo_params`). Loading checks
+``pid`` (optional; `felis sysid` writes the gains it fitted) is the Position P, I, D Gain in control-table units
+the servo runs: the MuJoCo joint then runs the firmware's controller at those gains (`felis.sim.servo.controller`;
+``kp`` is P's stiffness); without it, the description's gains. Joints not listed keep the datasheet model
+(`felis.sim.servo.servo_params`). Loading checks
 everything and raises `ServoParamsError` with one line naming the file and the problem: a missing or
 unreadable file, bad JSON, another schema or robot, an unknown joint, a missing or extra field, a
 non-finite or negative value (``kp`` and ``torque_limit`` must be positive). Writing is atomic: a
@@ -29,13 +34,19 @@ from felis.sim.servo import ServoParams
 from felis.spec import RobotSpec
 
 SCHEMA = 1
-FIELDS = tuple(f.name for f in fields(ServoParams))
+FIELDS = tuple(f.name for f in fields(ServoParams) if f.name != "pid")  # required; "pid" is optional
 _POSITIVE = ("kp", "torque_limit")
 
 
 def servo_params_dict(params: Mapping[str, ServoParams]) -> dict[str, dict[str, float]]:
     """``{joint: {field: value}}``, the file's ``joints`` object."""
-    return {name: {k: float(v) for k, v in asdict(p).items()} for name, p in params.items()}
+    out = {}
+    for name, p in params.items():
+        d = {k: float(v) for k, v in asdict(p).items() if k != "pid"}
+        if p.pid is not None:
+            d["pid"] = [float(g) for g in p.pid]
+        out[name] = d
+    return out
 
 
 def save_servo_params(path: str | os.PathLike, robot: str, params: Mapping[str, ServoParams],
@@ -46,7 +57,7 @@ def save_servo_params(path: str | os.PathLike, robot: str, params: Mapping[str, 
     """
     path = Path(path)
     for name, p in params.items():
-        _check_joint(path, name, asdict(p))
+        _check_joint(path, name, servo_params_dict({name: p})[name])
     doc = {"schema": SCHEMA, "robot": robot, "joints": servo_params_dict(params)}
     if fit is not None:
         doc["fit"] = dict(fit)
@@ -83,13 +94,23 @@ def load_servo_params(path: str | os.PathLike, spec: RobotSpec) -> dict[str, Ser
         if not isinstance(values, dict):
             raise ServoParamsError(f"{path}: joints.{name} must be an object with {', '.join(FIELDS)}")
         _check_joint(path, name, values)
-        out[name] = ServoParams(**{k: float(values[k]) for k in FIELDS})
+        pid = values.get("pid")
+        out[name] = ServoParams(**{k: float(values[k]) for k in FIELDS},
+                                pid=None if pid is None else tuple(float(g) for g in pid))
     return out
 
 
 def _check_joint(path: Path, name: str, values: Mapping) -> None:
+    pid = values.get("pid") if isinstance(values, dict) else None
+    if isinstance(values, dict) and "pid" in values:
+        values = {k: v for k, v in values.items() if k != "pid"}
+        if (not isinstance(pid, list) or len(pid) != 3
+                or not all(isinstance(g, int | float) and not isinstance(g, bool) and math.isfinite(g) and g >= 0
+                           for g in pid)):
+            raise ServoParamsError(f"{path}: joints.{name}.pid must be [P, I, D], three non-negative numbers, "
+                                   f"got {pid!r}")
     check_fields(values, FIELDS, f"{path}: joints.{name}", ServoParamsError,
-                 unknown="{where}: unknown field {field!r}; fields: {fields}")
+                 unknown="{where}: unknown field {field!r}; fields: {fields}, pid")
     for k in FIELDS:
         v = values[k]
         if isinstance(v, bool) or not isinstance(v, int | float):

@@ -2,9 +2,20 @@
 `Recording` in an ``.npz`` file.
 
 `record` drives any HAL `Robot` (a `DynamixelRobot` over a real or virtual bus, or a `MujocoRobot`)
-at ``rate_hz``: per tick it writes the target and reads the state, timestamping each call
-(``time.perf_counter`` before and after, seconds since the start) for a realtime robot; for a
-simulation the times are the simulated ones (k/rate).
+at ``rate_hz``: per tick it writes the target and reads the state. Each recording says on which time base
+its write and read times are (``timebase``):
+
+* ``"emulator"``: the servos run on a simulated clock the recorder advances (``clock=``, a `StepClock` driving
+  a virtual bus's servos): the write and the read of tick k happen at exactly the emulator's time t_k, and
+  the clock then moves on by 1/rate. No host timing enters the recording: a loaded machine only makes it
+  slower (`felis.calib.sysid.clock`).
+* ``"simulation"``: a non-realtime robot (`MujocoRobot`): the simulated times k/rate.
+* ``"host"``: a realtime robot on the wall clock: ``time.perf_counter`` before and after each call, seconds
+  since the start; the replay adds a latency (fitted, starting at `LATENCY_S`).
+
+``setup`` says what the servos drive: ``"robot"`` (the robot's MuJoCo model: links, gravity; the robot hung
+on a stand for a floating base) or ``"bench"`` (bare horns, nothing attached: the servos on a bench, or a
+virtual bus's standalone servos).
 
 Recordings are saved as ``.npz`` (plain arrays, never pickle); parameter files by
 `felis.sim.servo_file`. ``felis sysid`` (``felis/cli/sysid.py``) wires it all for an operator.
@@ -20,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from felis.calib.sysid.clock import StepClock
 from felis.calib.sysid.excitation import Excitation, plan
 from felis.calib.sysid.model import check_joints
 from felis.errors import FelisError, SysidError
@@ -29,7 +41,10 @@ from felis.loop import servo_stop
 from felis.spec import RobotSpec
 
 RECORDING_SCHEMA = 1
-LATENCY_S = 0.0005  # command → effect delay for a realtime recording beyond the write's own duration
+LATENCY_S = 0.0005  # starting command → effect delay for a host-timed recording, beyond the write's own duration
+TIMEBASES = ("host", "simulation", "emulator")
+CLOCK_RETRIES = 5  # on the emulator's clock: reads of a tick whose reply was lost, before the clock moves on
+SETUPS = ("robot", "bench")
 _EXCITATION = Excitation()  # the default test signal (frozen: one instance serves every call)
 
 
@@ -37,7 +52,8 @@ _EXCITATION = Excitation()  # the default test signal (frozen: one instance serv
 class Recording:
     """What `record` measured. Times are seconds since the start; arrays are ticks × joints in spec order.
 
-    ``t_write``/``t_read``: (ticks, 2) host times before and after each write/read; ``q_cmd``: what
+    ``t_write``/``t_read``: (ticks, 2) times before and after each write/read, on ``timebase`` (module doc;
+    equal pairs where the time base stands still during a tick); ``q_cmd``: what
     ``write`` returned (after the backend's clamping and quantisation); ``q``/``dq``/``effort``:
     the state read; ``valid``: the read succeeded for every joint; ``active``/``kind``: the plan.
     """
@@ -57,11 +73,21 @@ class Recording:
     active: np.ndarray
     kind: np.ndarray
     backend: str = ""
+    timebase: str = ""  # module doc; "" (older files): "host" if realtime else "simulation"
+    setup: str = "robot"
+
+    def __post_init__(self):
+        if not self.timebase:
+            self.timebase = "host" if self.realtime else "simulation"
+        if self.timebase not in TIMEBASES:
+            raise SysidError(f"unknown time base {self.timebase!r}; expected one of {', '.join(TIMEBASES)}")
+        if self.setup not in SETUPS:
+            raise SysidError(f"unknown setup {self.setup!r}; expected one of {', '.join(SETUPS)}")
 
     @property
     def latency_s(self) -> float:
-        """Default command delay for the replay: `LATENCY_S` on a realtime robot, 0 in simulation."""
-        return LATENCY_S if self.realtime else 0.0
+        """Starting command delay for the replay: `LATENCY_S` on the host's clock, 0 on a simulated one."""
+        return LATENCY_S if self.timebase == "host" else 0.0
 
     def segment(self, joint: str) -> slice:
         """Ticks during which ``joint`` was under test."""
@@ -111,7 +137,8 @@ class Recording:
             kw = {f: data[f] for f in ("t_write", "t_read", "q_cmd", "q", "dq", "effort", "valid", "active", "kind")}
             rec = Recording(robot=str(data["robot"]), joints=tuple(str(s) for s in data["joints"]),
                             rate_hz=float(data["rate_hz"]), realtime=bool(data["realtime"]),
-                            fixed_base=bool(data["fixed_base"]), backend=str(data.get("backend", "")), **kw)
+                            fixed_base=bool(data["fixed_base"]), backend=str(data.get("backend", "")),
+                            timebase=str(data.get("timebase", "")), setup=str(data.get("setup", "robot")), **kw)
         except KeyError as e:
             raise SysidError(f"{path}: recording lacks {e.args[0]!r}") from None
         n, m = rec.q.shape if rec.q.ndim == 2 else (0, 0)
@@ -129,21 +156,27 @@ class Recording:
 
 def record(robot: Robot, joints: Sequence[str] | None = None, *, rate_hz: float = 200.0,
            exc: Excitation = _EXCITATION, fixed_base: bool = True, backend: str = "",
-           progress: Callable[[float], None] | None = None, max_invalid: float = 0.05) -> Recording:
+           progress: Callable[[float], None] | None = None, max_invalid: float = 0.05,
+           clock: StepClock | None = None, setup: str = "robot") -> Recording:
     """Run the excitation for ``joints`` on ``robot`` (connected or armed) and record it.
 
-    Only the HAL `Robot` protocol is used. A realtime robot is paced by the wall clock
-    (``time.perf_counter``); otherwise ``advance`` steps the simulation. The robot is armed if it
-    is only connected, and left armed at the hold pose. ``fixed_base`` records that a floating-base
-    robot hung on a stand (the replay then holds its base). ``progress(fraction)`` is called now and
-    then. A read that fails (`felis.errors.CommError`) or leaves a joint stale marks its tick invalid;
-    more than ``max_invalid`` of them is a `SysidError`.
+    Only the HAL `Robot` protocol is used. With ``clock`` (the `StepClock` the robot's virtual servos run on)
+    each tick is written and read at the clock's time, which then moves on by 1/rate: the emulator's time base
+    (module doc), no pacing. Otherwise a realtime robot is paced by the wall clock (``time.perf_counter``) and
+    a simulation is stepped by ``advance``. The robot is armed if it is only connected, and left armed at the
+    hold pose. ``fixed_base`` records that a floating-base robot hung on a stand (the replay then holds its
+    base), ``setup`` what the servos drive (module doc). ``progress(fraction)`` is called now and then. A read
+    that fails (`felis.errors.CommError`) or leaves a joint stale marks its tick invalid; more than
+    ``max_invalid`` of them is a `SysidError`.
     """
     spec = robot.spec
     joints = check_joints(spec, joints)
     if not 1.0 <= rate_hz <= 1000.0:
         raise SysidError(f"rate must be within 1…1000 Hz, got {rate_hz:g}")
+    if setup not in SETUPS:
+        raise SysidError(f"unknown setup {setup!r}; expected one of {', '.join(SETUPS)}")
     realtime = bool(getattr(robot, "realtime", False))
+    timebase = "emulator" if clock is not None else "host" if realtime else "simulation"
     if robot.lifecycle is Lifecycle.DISCONNECTED:
         robot.connect()
     if robot.lifecycle is Lifecycle.CONNECTED:
@@ -157,29 +190,44 @@ def record(robot: Robot, joints: Sequence[str] | None = None, *, rate_hz: float 
     q_cmd, q, dq, effort = (np.zeros((n, m)) for _ in range(4))
     valid = np.ones(n, dtype=bool)
     dt = 1.0 / rate_hz
-    clock = time.perf_counter
-    t0 = clock()
+    wall = time.perf_counter
+    t0 = clock() if clock is not None else wall()
     last = first
+
+    def read_checked():
+        nonlocal last
+        try:
+            s = robot.read()
+            ok = not (s.faults is not None and s.faults.stale is not None and bool(s.faults.stale.any()))
+            last = s
+        except FelisError:
+            s, ok = last, False
+        stop = servo_stop(spec, s.faults, True)
+        if stop is not None:  # a servo that cannot follow: the recording is worthless, and so is going on
+            raise SysidError(f"recording stopped: {stop[1]}")
+        return s, ok
+
     for k in range(n):
-        if realtime:
-            wait = t0 + k * dt - clock()
+        if clock is not None:  # the emulator's time stands still within the tick
+            t = clock() - t0
+            sent = robot.write(Command(q=p.q[k]))
+            s, valid[k] = read_checked()
+            for _ in range(CLOCK_RETRIES):  # a lost reply (a loaded host): ask again before time moves on, so
+                if valid[k]:  # that everything sent in this tick is handled at t_k (the servos answer in order)
+                    break
+                s, valid[k] = read_checked()
+            t_write[k] = t_read[k] = t
+            clock.advance(dt)
+        elif realtime:
+            wait = t0 + k * dt - wall()
             if wait > 0:
                 time.sleep(wait)
-            a = clock() - t0
+            a = wall() - t0
             sent = robot.write(Command(q=p.q[k]))
-            b = clock() - t0
-            try:
-                s = robot.read()
-                stale = s.faults is not None and s.faults.stale is not None and bool(s.faults.stale.any())
-                valid[k] = not stale
-                last = s
-            except FelisError:
-                s, valid[k] = last, False
-            stop = servo_stop(spec, s.faults, True)
-            if stop is not None:  # a servo that cannot follow: the recording is worthless, and so is going on
-                raise SysidError(f"recording stopped: {stop[1]}")
+            b = wall() - t0
+            s, valid[k] = read_checked()
             t_write[k] = (a, b)
-            t_read[k] = (b, clock() - t0)  # the read starts when the write returns
+            t_read[k] = (b, wall() - t0)  # the read starts when the write returns
         else:
             sent = robot.write(Command(q=p.q[k]))
             s = robot.read()
@@ -197,4 +245,4 @@ def record(robot: Robot, joints: Sequence[str] | None = None, *, rate_hz: float 
                          "bus (`felis monitor`) and record again")
     return Recording(robot=spec.name, joints=spec.names, rate_hz=float(rate_hz), realtime=realtime,
                      fixed_base=fixed_base, t_write=t_write, t_read=t_read, q_cmd=q_cmd, q=q, dq=dq, effort=effort,
-                     valid=valid, active=p.active, kind=p.kind, backend=backend)
+                     valid=valid, active=p.active, kind=p.kind, backend=backend, timebase=timebase, setup=setup)

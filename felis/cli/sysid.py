@@ -4,12 +4,13 @@
 
     felis sysid --robot cat|arm [--joints NAMES] [--backend dxl|sim] [--port PATH|virtual] [--baud B]
                 [--rate HZ] [--out FILE] [--record FILE.npz] [--from-recording FILE.npz]
-                [--effort-weight W] [--latency-ms MS] [--yes] [--json]
+                [--effort-weight W] [--latency-ms MS] [--hold PARAMS] [--yes] [--json]
 
-Records step and chirp responses one joint at a time (others hold), fits kp, damping, armature,
-friction loss and torque limit per joint, writes a servo parameter file (default
-``sysid-<robot>.json`` here) that ``felis run --servo-params FILE`` loads, and prints, per joint, the
-datasheet and fitted parameters and the replay's RMS error before and after. ``--port virtual``
+Records step and chirp responses one joint at a time (others hold), fits per joint the firmware's Position
+P, I, D Gain (control-table units), damping, armature, friction loss, torque limit and latency
+(`felis.calib.sysid`; ``--hold`` keeps some at their starting values), writes a servo parameter file (default
+``sysid-<robot>.json`` here, the gains as ``pid``) that ``felis run --servo-params FILE`` loads, and prints, per
+joint, the starting and fitted parameters and the replay's RMS error before and after. ``--port virtual``
 spawns a virtual bus backed by MuJoCo with the base held (a floating-base robot hangs on a stand);
 ``--backend sim`` records MuJoCo directly. Before moving real servos it says what will move and asks
 for confirmation unless ``--yes``. Errors are one line.
@@ -33,6 +34,16 @@ def _names(text: str) -> list[str]:
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:
         raise argparse.ArgumentTypeError(f"expected joint or group names like fl_pitch,tail, got {text!r}")
+    return names
+
+
+def _held(text: str) -> list[str]:
+    from felis.calib.sysid import PARAMS
+
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in PARAMS]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"expected parameters among {', '.join(PARAMS)}, got {text!r}")
     return names
 
 
@@ -132,7 +143,8 @@ def cmd_sysid(args) -> int:
                 files["recording"] = str(rec.save(args.record))
         progress = (lambda j, i, n: bar(f"fitting {j}", i / n)) if bar.enabled else None
         latency = None if args.latency_ms is None else args.latency_ms / 1000.0
-        result = fit(spec, rec, names, effort_weight=args.effort_weight, latency_s=latency, progress=progress)
+        result = fit(spec, rec, names, effort_weight=args.effort_weight, latency_s=latency, fixed=args.hold or (),
+                     progress=progress)
     finally:
         bar.stop()
     params = result.params
@@ -154,20 +166,22 @@ def _print_table(result, info, files) -> None:
     if not console.is_terminal:
         console = output.console(width=160)
     t = Table(title=f"{result.robot}: servo model, datasheet → fitted", title_justify="left")
-    for col in ("joint", "kp", "damping", "armature", "friction", "torque limit", "step RMS (mrad)",
-                "RMS (mrad)", "×"):
+    for col in ("joint", "P", "I", "D", "damping", "armature", "friction", "torque limit", "latency (ms)",
+                "step RMS (mrad)", "RMS (mrad)", "×"):
         t.add_column(col, justify="left" if col == "joint" else "right")
     for name, f in result.joints.items():
         d, p = f.default, f.fitted
-        cells = [f"{getattr(d, k):.4g} → {getattr(p, k):.4g}" for k in ("kp", "damping", "armature", "frictionloss")]
+        gains = [f"{a:.4g} → {b:.4g}" for a, b in zip(d.pid, p.pid, strict=True)]
+        cells = [f"{getattr(d, k):.4g} → {getattr(p, k):.4g}" for k in ("damping", "armature", "frictionloss")]
         tl = f"{d.torque_limit:.4g} → {p.torque_limit:.4g}" + ("" if f.saturated else " (not reached)")
-        t.add_row(name, *cells, tl, f"{1e3 * f.step_rms_before:.2f} → {1e3 * f.step_rms_after:.2f}",
+        lat = f"{1e3 * f.latency_before:.2f} → {1e3 * f.latency_after:.2f}"
+        t.add_row(name, *gains, *cells, tl, lat, f"{1e3 * f.step_rms_before:.2f} → {1e3 * f.step_rms_after:.2f}",
                   f"{1e3 * f.rms_before:.2f} → {1e3 * f.rms_after:.2f}", f"{f.step_improvement:.1f}")
     console.print(t)
     achieved = f", achieved {info['achieved_hz']:.0f} Hz" if info.get("achieved_hz") else ""
     console.print(f"recording: {info['ticks']} ticks at {info['rate_hz']:g} Hz{achieved}, {info['invalid_ticks']} "
-                  f"invalid, {info['backend']}; units: N·m/rad, N·m·s/rad, kg·m², N·m (m and N for a prismatic "
-                  "joint); × = step RMS before / after")
+                  f"invalid, {info['backend']}; P, I, D in control-table units; units: N·m·s/rad, kg·m², N·m (m and N "
+                  "for a prismatic joint); × = step RMS before / after")
     for kind, path in files.items():
         console.print(f"{kind}: {path}")
     console.print(f"use it: felis run CONTROLLER --robot {result.robot} --servo-params {files['params']}")
@@ -175,8 +189,8 @@ def _print_table(result, info, files) -> None:
 
 def register(sub) -> None:
     """Add ``felis sysid`` to the ``felis`` sub-commands."""
-    p = sub.add_parser("sysid", help="identify the simulated servo model (gain, damping, armature, friction, "
-                       "torque limit) from step and chirp responses",
+    p = sub.add_parser("sysid", help="identify the servo model (P, I, D gains, damping, armature, friction, "
+                       "torque limit, latency) from step and chirp responses",
                        description="Record step and chirp responses one joint at a time (servos over --port, "
                        "a virtual bus with --port virtual, or MuJoCo with --backend sim), fit the MuJoCo servo "
                        "model per joint with scipy, and write a servo parameter file for `felis run "
@@ -194,7 +208,11 @@ def register(sub) -> None:
     p.add_argument("--from-recording", type=Path, metavar="FILE.npz", help="fit a saved recording; move nothing")
     p.add_argument("--effort-weight", type=float, default=1.0,
                    help="weight of the torque (Present Current) residual; 0 = positions only (default 1)")
-    p.add_argument("--latency-ms", type=float, help="command delay in the replay (default 0.5 on servos)")
+    p.add_argument("--latency-ms", type=float, help="starting command delay of the replay, fitted (default 0.5 on "
+                   "the host's clock)")
+    p.add_argument("--hold", type=_held, metavar="PARAMS", help="parameters to keep at their starting values "
+                   "instead of fitting, comma-separated: p, i, d, damping, armature, frictionloss, torque_limit, "
+                   "latency")
     p.add_argument("--yes", action="store_true", help="do not ask before moving the servos")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     p.add_argument("--virtual-servo-params", metavar="FILE", help=argparse.SUPPRESS)  # tests: a 'wrong' sim
