@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench ik-study landing-study lint clean
+.PHONY: demo test test-slow test-rerun bench ik-study landing-study lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -20,6 +20,15 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m pytest -q -m slow
+
+# A third reader of the logs: Rerun's MCAP import, in a venv of its own (rerun-sdk is ~460 MB; not a dependency).
+RERUN_VENV := .venv-rerun
+$(RERUN_VENV)/bin/rerun:
+	@test -x $(RERUN_VENV)/bin/python || $(PYTHON) -m venv $(RERUN_VENV)
+	$(RERUN_VENV)/bin/pip install --quiet rerun-sdk==0.41.0
+
+test-rerun: $(STAMP) $(RERUN_VENV)/bin/rerun
+	FELIS_RERUN=$(CURDIR)/$(RERUN_VENV)/bin/rerun MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m pytest -q tests/logs/test_rerun_import.py
 
 bench: $(STAMP)
 	$(PY) bench/sim_speed.py
@@ -42,4 +51,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) runs build *.egg-info
+	rm -rf $(VENV) $(RERUN_VENV) runs build *.egg-info

@@ -3,8 +3,12 @@
 The controller first moves the arm from where it is to the IK solution of the trajectory's first
 point (minimum-jerk, ``lead_in`` seconds), then streams the trajectory: for every 10 ms of trajectory
 time it feeds the next target to the pipeline (MP → PE → mean filter → exact refinement) and
-commands the refined joint angles. The pipeline's frame offsets are in 100 Hz frames, so at other
-loop rates the controller steps it once per 10 ms of elapsed time (several steps per tick, or none).
+commands the refined joint angles. Targets are taken ``lead`` seconds ahead of the clock: a servo in
+position mode follows a moving goal late by its velocity lag (`felis.servos.velocity_lag_s`, 45 ms for the
+arm's XM430-W350 at P = 800), and a reading shows a command one tick later; by default the lead is the
+slowest arm joint's lag plus one 10 ms frame, so the tool point, not the command, is on the target.
+The pipeline's frame offsets are in 100 Hz frames, so at other loop rates the controller steps it once
+per 10 ms of elapsed time (several steps per tick, or none).
 The gripper holds its position. After the last point the arm holds the last pose.
 
 It keeps what an operator wants to know after a run (`summary`): the commanded pose's position error
@@ -22,6 +26,7 @@ from felis.controllers.trajectories import BUILTINS, builtin_trajectory, read_tr
 from felis.errors import ParameterError
 from felis.hal import Command, State
 from felis.learning.ik.solver import IkSolver
+from felis.servos import servo_model, velocity_lag_s
 from felis.spec import RobotSpec
 
 ARM_JOINTS = armkin.JOINTS
@@ -63,7 +68,7 @@ class ArmTrackController:
 
     name = "arm-track"
 
-    def __init__(self, trajectory, solver=None, lead_in: float = LEAD_IN):
+    def __init__(self, trajectory, solver=None, lead_in: float = LEAD_IN, lead: float | None = None):
         t = np.asarray(trajectory.t, dtype=float)
         p = np.asarray(trajectory.p, dtype=float)
         if p.ndim != 2 or p.shape[1] != 3 or len(t) != len(p) or len(p) < 2:
@@ -77,7 +82,10 @@ class ArmTrackController:
         self.t = t - t[0]
         self.p = p
         self.solver = solver
+        if lead is not None and not (np.isfinite(lead) and 0 <= lead <= 0.5):
+            raise ParameterError(f"arm-track: lead must be within 0…0.5 s, got {lead}")
         self.lead_in = float(lead_in)
+        self.lead = lead  # None: from the servos (`reset`)
         self.duration = self.lead_in + float(self.t[-1])
 
     @property
@@ -96,6 +104,9 @@ class ArmTrackController:
                                  f"lacks {', '.join(missing)}")
         self.spec = spec
         self.idx = np.array([spec.index(j) for j in ARM_JOINTS])
+        if self.lead is None:  # the slowest joint's velocity lag, plus the tick between a command and its reading
+            joints = [spec.joints[i] for i in self.idx]
+            self.lead = max(velocity_lag_s(servo_model(j.servo), j.pid[0]) for j in joints) + FRAME
         self.t0 = state.t
         self.q_start = np.asarray(state.q, dtype=float).copy()
         self.solver.reset()
@@ -121,7 +132,7 @@ class ArmTrackController:
             self.track_err.append(float(np.linalg.norm(armkin.fk(q_meas) - self.target_at(tau))))
         due = min(int(np.floor(tau / FRAME + 1e-9)) + 1, int(np.floor(self.t[-1] / FRAME + 1e-9)) + 1)
         while self.frames < due:
-            step = self.solver.step(self.target_at(self.frames * FRAME))
+            step = self.solver.step(self.target_at(self.frames * FRAME + self.lead))
             self.frames += 1
             self.cmd_err.append(step.error)
             self.unreachable += not step.reachable

@@ -6,7 +6,11 @@ One file per kind of data, each with a time column ``t`` (s of run time) and a h
 - ``joint_commands.csv``: ``<joint>.position`` sent;
 - ``imu.csv``: the IMU's orientation ``qw, qx, qy, qz`` and ``tilt_deg`` (when the robot has one);
 - ``base.csv``: ``height`` (when known); ``contacts.csv``: one 0/1 column per foot (when fitted);
-- ``events.csv``: ``t, kind, detail`` (the details as JSON).
+- ``events.csv``: ``t, kind, detail`` (the details as JSON);
+- one file per other channel that carries numbers each tick (``balance.csv`` for ``/balance``, ``phase.csv`` for
+  ``/phase``, ``timing.csv`` for ``/timing``, …): a column per number or flag, nested fields joined with dots
+  (``xcom.x``); a field a message lacks is an empty cell. Once-only channels (``/meta``, ``/summary``, the
+  verdicts) stay in the log.
 
 Files are written whole to temporary names and moved into place (`felis.files.write_atomic`); NaN is an empty
 cell.
@@ -23,7 +27,7 @@ import numpy as np
 
 from felis.errors import LogError
 from felis.files import prepare_parent, write_atomic
-from felis.logs.runlog import read_log
+from felis.logs.runlog import channel_messages, read_log
 from felis.rotations import tilt_deg
 
 
@@ -37,6 +41,17 @@ def _table(t: np.ndarray, columns: dict[str, np.ndarray]) -> str:
                                                                                      else v)
                                       for v in (c[i].item() for c in cols))])
     return buf.getvalue()
+
+
+def _flat(msg: dict, prefix: str = "") -> dict:
+    """Numbers and flags (as 0.0/1.0) of a message, nested objects joined with dots; strings and lists left out."""
+    out = {}
+    for k, v in msg.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        elif isinstance(v, bool | int | float):
+            out[prefix + k] = float(v)
+    return out
 
 
 def export_csv(path: str | Path, out_dir: str | Path) -> list[Path]:
@@ -64,6 +79,16 @@ def export_csv(path: str | Path, out_dir: str | Path) -> list[Path]:
         files["base.csv"] = _table(data.t, {"height": data.height})
     if data.contacts is not None:
         files["contacts.csv"] = _table(data.t, {f: data.contacts[:, k].astype(int) for k, f in enumerate(data.feet)})
+    done = {"/meta", "/summary", "/imu", "/contacts", "/base"}  # written above (or once-only)
+    for topic, items in channel_messages(path).items():
+        if topic in done or len(items) < 2:
+            continue
+        rows = [(t, _flat(m)) for t, m in items]
+        names = list(dict.fromkeys(k for _, r in rows for k in r))
+        if names:
+            files[topic.strip("/").replace("/", "_") + ".csv"] = _table(
+                np.array([t for t, _ in rows]), {k: np.array([r.get(k, np.nan) for _, r in rows], dtype=float)
+                                                 for k in names})
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["t", "kind", "detail"])

@@ -888,6 +888,46 @@ def read_log(path: str | Path) -> LogData:
                    start_ns=int(start_ns))
 
 
+def channel_messages(path: str | Path, topics: set[str] | None = None) -> dict[str, list[tuple[float, dict]]]:
+    """Every message of the log's JSON channels and felis's own Protobuf ones (``felis.*``), by topic, as (run time
+    s, dict), in file order: what `felis.logs.export` writes for channels `read_log` does not gather (``/balance``,
+    ``/phase``, …). ``topics`` limits it. Foxglove's Protobuf channels are left to `read_log`."""
+    path = Path(path)
+    records, _ = _records(path)
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    out: dict[str, list[tuple[int, dict]]] = {}
+    start = None
+    for rec in records:
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec
+        elif isinstance(rec, Message):
+            ch = channels.get(rec.channel_id)
+            if ch is None:
+                continue
+            if ch.topic == "/meta" and start is None:
+                start = rec.log_time
+            if topics is not None and ch.topic not in topics:
+                continue
+            sch = schemas.get(ch.schema_id)
+            try:
+                if ch.message_encoding == "json":
+                    msg = json.loads(rec.data)
+                elif ch.message_encoding == "protobuf" and sch is not None and sch.name.startswith("felis."):
+                    msg = as_dict(protobuf_class(sch.name, sch.data).FromString(rec.data))
+                else:
+                    continue
+            except Exception:  # noqa: BLE001 - any decoding failure is the same fault for the user
+                raise LogError(f"{path}: a {ch.topic} message cannot be decoded ({ch.message_encoding})") from None
+            if isinstance(msg, dict):
+                out.setdefault(ch.topic, []).append((rec.log_time, msg))
+    if start is None:
+        raise LogError(f"{path}: not a felis run log (no /meta message)")
+    return {t: [((ns - start) / 1e9, m) for ns, m in items] for t, items in out.items()}
+
+
 def log_info(path: str | Path) -> dict:
     """A JSON-able overview of a run log (for ``felis log info`` and scripts)."""
     data = read_log(path)

@@ -1,7 +1,7 @@
 """Two readers that felis does not own check its logs: a port of Foxglove's JSON-schema rules (every JSON
 channel's schema), and the `mcap` reader with the Protobuf decoder of `mcap-protobuf-support` (every message of
 a real simulated drop decodes). The per-tick Protobuf templates (`felis.logs.wire`) decode to what the SDK's own
-encoder writes. (Rerun's MCAP import is not installed here and is not run.)
+encoder writes. Rerun's MCAP import is the third reader (`tests/logs/test_rerun_import.py`, `make test-rerun`).
 """
 
 from __future__ import annotations
@@ -261,3 +261,29 @@ def test_the_shipped_layout_opens_panels_on_channels_the_logs_have(drop_log):
     assert topics and topics <= have, topics - have
     names = set(re.findall(r'name==\\"(\w+)\\"', text))
     assert names and names <= set(load_spec("cat").names) | set(load_spec("arm").names)
+
+
+def test_csv_export_has_every_per_tick_channel(balance_log, tmp_path):
+    """`felis log export LOG --csv DIR`: the joints, the IMU, the skills' channels (/balance, /phase) and /timing,
+    a row per message, a column per number (nested fields joined with dots), flags as 0/1."""
+    import csv
+
+    from felis.logs.export import export_csv
+    from felis.logs.runlog import channel_messages, read_log
+
+    files = {p.name: p for p in export_csv(balance_log, tmp_path / "csv")}
+    assert {"joint_states.csv", "joint_commands.csv", "imu.csv", "events.csv", "balance.csv", "phase.csv",
+            "timing.csv"} <= set(files)
+    data = read_log(balance_log)
+    msgs = channel_messages(balance_log, {"/balance", "/phase"})
+    for name, topic in (("balance.csv", "/balance"), ("phase.csv", "/phase")):
+        with open(files[name]) as fh:
+            rows = list(csv.DictReader(fh))
+        assert len(rows) == data.counts[topic] == len(msgs[topic]) > 0
+        t, _ = msgs[topic][-1]
+        assert float(rows[-1]["t"]) == pytest.approx(t, abs=1e-6)
+    with open(files["balance.csv"]) as fh:
+        header = next(csv.reader(fh))
+    assert {"margin", "alarm", "warning", "xcom.x", "xcom.y", "com.z"} <= set(header) and "class" not in header
+    with open(files["joint_states.csv"]) as fh:
+        assert sum(1 for _ in fh) == len(data.t) + 1
