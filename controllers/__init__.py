@@ -33,11 +33,12 @@ from felis.learning.landing.policy import DEFAULT_POLICY, load_policy
 from felis.learning.phase.estimator import PhaseEstimator
 
 
-def _arm_track(trajectory="figure8", weights=None, lead_in: float | None = None) -> Controller:
+def _arm_track(trajectory="figure8", weights=None, lead_in: float | None = None, hold: float = 0.0) -> Controller:
     """The arm following a tool-point trajectory (a builtin name, a CSV file or a Trajectory) with the
-    learned IK pipeline (weights: the shipped ones unless a file is given)."""
+    learned IK pipeline (weights: the shipped ones unless a file is given), after holding its first point
+    ``hold`` seconds."""
     return ArmTrackController(trajectory_from(trajectory), IkSolver.load(weights),
-                              lead_in=LEAD_IN if lead_in is None else lead_in)
+                              lead_in=LEAD_IN if lead_in is None else lead_in, hold=hold)
 
 
 def _step_in_place(frequency_hz: float = 2.0, lift: float = 0.5) -> Controller:

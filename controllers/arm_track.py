@@ -1,8 +1,9 @@
 """Arm tool-point tracking with the learned IK pipeline (`felis.learning.ik.solver`, seed 001).
 
 The controller first moves the arm from where it is to the IK solution of the trajectory's first
-point (minimum-jerk, ``lead_in`` seconds), then streams the trajectory: for every 10 ms of trajectory
-time it feeds the next target to the pipeline (MP → PE → mean filter → exact refinement) and
+point (minimum-jerk, ``lead_in`` seconds), holds it ``hold`` seconds (the servos' I terms take up gravity's
+load meanwhile: with the arm's I = 100 that takes a few seconds), then streams the trajectory: for every 10 ms of
+trajectory time it feeds the next target to the pipeline (MP → PE → mean filter → exact refinement) and
 commands the refined joint angles. Targets are taken ``lead`` seconds ahead of the clock: a servo in
 position mode follows a moving goal late by its velocity lag (`felis.servos.velocity_lag_s`, 45 ms for the
 arm's XM430-W350 at P = 800), and a reading shows a command one tick later; by default the lead is the
@@ -44,9 +45,9 @@ def error_stats(err_m: np.ndarray) -> dict:
             "p99_mm": float(np.percentile(e, 99)), "max_mm": float(e.max())}
 
 
-def run_time(trajectory, lead_in: float = LEAD_IN) -> float:
-    """Seconds a run needs to follow ``trajectory``: the lead-in, the trajectory, and `SETTLE`."""
-    return lead_in + float(trajectory.t[-1] - trajectory.t[0]) + SETTLE
+def run_time(trajectory, lead_in: float = LEAD_IN, hold: float = 0.0) -> float:
+    """Seconds a run needs to follow ``trajectory``: the lead-in, the hold, the trajectory, and `SETTLE`."""
+    return lead_in + hold + float(trajectory.t[-1] - trajectory.t[0]) + SETTLE
 
 
 def trajectory_from(source):
@@ -68,7 +69,8 @@ class ArmTrackController:
 
     name = "arm-track"
 
-    def __init__(self, trajectory, solver=None, lead_in: float = LEAD_IN, lead: float | None = None):
+    def __init__(self, trajectory, solver=None, lead_in: float = LEAD_IN, lead: float | None = None,
+                 hold: float = 0.0):
         t = np.asarray(trajectory.t, dtype=float)
         p = np.asarray(trajectory.p, dtype=float)
         if p.ndim != 2 or p.shape[1] != 3 or len(t) != len(p) or len(p) < 2:
@@ -82,11 +84,14 @@ class ArmTrackController:
         self.t = t - t[0]
         self.p = p
         self.solver = solver
+        if not (np.isfinite(hold) and hold >= 0):
+            raise ParameterError(f"arm-track: hold must be ≥ 0 s, got {hold}")
         if lead is not None and not (np.isfinite(lead) and 0 <= lead <= 0.5):
             raise ParameterError(f"arm-track: lead must be within 0…0.5 s, got {lead}")
         self.lead_in = float(lead_in)
+        self.hold = float(hold)
         self.lead = lead  # None: from the servos (`reset`)
-        self.duration = self.lead_in + float(self.t[-1])
+        self.duration = self.lead_in + self.hold + float(self.t[-1])
 
     @property
     def markers(self) -> np.ndarray:
@@ -126,7 +131,9 @@ class ArmTrackController:
         if t < self.lead_in:
             w = min_jerk(t / self.lead_in) if self.lead_in > 0 else 1.0
             return Command(q=self.q_start + w * (self.q_first - self.q_start))
-        tau = t - self.lead_in
+        if t < self.lead_in + self.hold:  # at the first point while the servos' integrators take up the load
+            return Command(q=self.q_first)
+        tau = t - self.lead_in - self.hold
         q_meas = np.asarray(state.q, dtype=float)[self.idx]
         if self.frames > 0 and tau <= self.t[-1] + FRAME and np.all(np.isfinite(q_meas)):
             self.track_err.append(float(np.linalg.norm(armkin.fk(q_meas) - self.target_at(tau))))

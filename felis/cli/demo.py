@@ -16,6 +16,8 @@ from felis.drivers.ports import VIRTUAL
 from felis.errors import ParameterError
 from felis.shutdown import EXIT_INTERRUPTED
 
+ARM_HOLD_S = 6.0  # the arm holds the figure eight's first point while its servos' I terms take up gravity
+
 
 def register(sub) -> None:
     """Add ``felis demo``."""
@@ -74,8 +76,8 @@ def _episodes(run_dir: Path, no_video: bool):
 
     def arm() -> dict:
         eight = trajectory_from("figure8")
-        return dict(robot="arm", controller="arm-track", duration=run_time(eight),
-                    controller_options={"trajectory": eight}, log=run_dir / "arm_figure8.mcap",
+        return dict(robot="arm", controller="arm-track", duration=run_time(eight, hold=ARM_HOLD_S),
+                    controller_options={"trajectory": eight, "hold": ARM_HOLD_S}, log=run_dir / "arm_figure8.mcap",
                     video=None if no_video else run_dir / "arm_figure8.mp4",
                     plot=run_dir / "arm_figure8.png", meta={"demo": True})
 
@@ -94,5 +96,6 @@ def _episodes(run_dir: Path, no_video: bool):
                       log=run_dir / "drop.mcap", video=None if no_video else run_dir / "drop.mp4",
                       plot=run_dir / "drop.png", meta={"demo": True})),
         ("[bold]felis demo 3/4[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
-         "Posture Estimator → mean filter → exact refinement (MuJoCo)", arm),
+         "Posture Estimator → mean filter → exact refinement (MuJoCo; servos with PID 800/100/100, targets taken "
+         "ahead by the servos' lag, 6 s at the first point while the I terms take up gravity)", arm),
     )

@@ -343,7 +343,7 @@ def test_demo(tmp_path):
     assert arm["robot"] == "arm" and arm["complete"] is True
     track = arm["summary"]["controller"]
     assert track["frames"] > 500 and track["unreachable"] == 0 and track["invalid"] == 0
-    assert track["command_error"]["max_mm"] < 1e-6 and track["tracking_error"]["median_mm"] < 12
+    assert track["command_error"]["max_mm"] < 1e-6 and track["tracking_error"]["median_mm"] <= 1.0  # measured 0.8
     assert (run / "arm_figure8.mp4").read_bytes()[4:8] == b"ftyp"
 
     # part 4: the standing cat pushed: it falls without a reaction, after an early alarm; the selector's
