@@ -95,6 +95,7 @@ _GAINS = tuple(address(n) for n in ("position_p_gain", "position_i_gain", "posit
                                     "feedforward_2nd_gain"))
 VELOCITY_I, VELOCITY_P, PWM_LIMIT_ADDR, PROFILE_ACCELERATION = (
     address(n) for n in ("velocity_i_gain", "velocity_p_gain", "pwm_limit", "profile_acceleration"))
+_CTL_SPAN = (min(VELOCITY_I, VELOCITY_P, *_GAINS), max(VELOCITY_I, VELOCITY_P, *_GAINS) + 2)  # the gains' bytes
 
 
 @dataclass(frozen=True)
@@ -596,7 +597,19 @@ class HornModel:
         st.run(self, now)
 
     def firmware_controller(self) -> Controller:
-        """The controller the servo's memory sets now (operating mode, gains, PWM Limit, Goal Current in mode 5)."""
+        """The controller the servo's memory sets now (operating mode, gains, PWM Limit, Goal Current in mode 5);
+        made again only when those bytes changed (a goal write changes none of them: the hot path of a bus loop)."""
+        mem = self.mem
+        key = (mem[OPERATING_MODE], bytes(mem[_CTL_SPAN[0]:_CTL_SPAN[1]]),
+               bytes(mem[PWM_LIMIT_ADDR:PWM_LIMIT_ADDR + 2]), bytes(mem[GOAL_CURRENT:GOAL_CURRENT + 2]))
+        cached = self.__dict__.get("_ctl_cache")
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        ctl = self._make_controller()
+        self._ctl_cache = (key, ctl)
+        return ctl
+
+    def _make_controller(self) -> Controller:
         mem, ds = self.mem, self.datasheet
         pwm = U16.unpack_from(mem, PWM_LIMIT_ADDR)[0]
         if mem[OPERATING_MODE] == 1:
