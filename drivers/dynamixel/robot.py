@@ -31,8 +31,8 @@ None rather than a frozen reading: a controller never steers by an orientation t
 Operating mode and gains: every joint's servo must be in the description's operating mode (3 position,
 4 extended position, 5 current-based position; an EEPROM item, fixed with `felis check-eeprom`); connect
 writes the description's Position P/I/D Gain and Feedforward 1st/2nd Gain (RAM; the model's factory values
-where the description gives none) and, in mode 5, Goal Current (default: the Current Limit), and reads them
-back.
+where the description gives none) and, in mode 5, Goal Current (the description's, at most the servo's Current
+Limit; default: that limit), and reads them back.
 
 ``arm()`` reads the present positions, writes them as goals, then enables torque and reads Torque
 Enable back: no jump at start-up, and a servo that refuses torque (hardware-error shutdown) is an
@@ -235,8 +235,8 @@ class DynamixelRobot(RobotBase):
             if j.operating_mode == 5 and "goal_current" in table.items:
                 item = table.item("goal_current")
                 amps = j.goal_current
-                want["goal_current"] = (round(amps / item.scale) if amps is not None
-                                        else int(table.item("current_limit").default))
+                limit = int(bus.read(j.servo_id, "current_limit", raw=True))  # the servo's own (EEPROM) cap
+                want["goal_current"] = min(limit, round(amps / item.scale)) if amps is not None else limit
             for name, raw in want.items():
                 if bus.read(j.servo_id, name, raw=True) != raw:
                     bus.write(j.servo_id, name, raw, raw=True)
