@@ -738,6 +738,23 @@ def _records(path: Path) -> tuple[list, bool]:
     return out, complete
 
 
+def _messages(records: list) -> tuple[dict[int, Schema], dict[int, Channel], dict[str, list]]:
+    """Schemas and channels by id, and every message by topic as (log time, data, channel), in file order."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    raw: dict[str, list] = {}
+    for rec in records:
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec
+        elif isinstance(rec, Message):
+            ch = channels.get(rec.channel_id)
+            if ch is not None:
+                raw.setdefault(ch.topic, []).append((rec.log_time, rec.data, ch))
+    return schemas, channels, raw
+
+
 _CLASSES: dict[tuple[str, bytes], type] = {}
 
 
@@ -783,21 +800,9 @@ def read_log(path: str | Path) -> LogData:
     """
     path = Path(path)
     records, complete = _records(path)
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
+    schemas, channels, raw = _messages(records)
     counts: Counter[str] = Counter({t: 0 for t in ("/meta", "/joint_states", "/joint_commands", "/log")})
-    raw: dict[str, list] = {}
-    for rec in records:
-        if isinstance(rec, Schema):
-            schemas[rec.id] = rec
-        elif isinstance(rec, Channel):
-            channels[rec.id] = rec
-        elif isinstance(rec, Message):
-            ch = channels.get(rec.channel_id)
-            if ch is None:
-                continue
-            counts[ch.topic] += 1
-            raw.setdefault(ch.topic, []).append((rec.log_time, rec.data, ch))
+    counts.update({topic: len(items) for topic, items in raw.items()})
     topics = {c.topic for c in channels.values()}
     if "/state" in topics and "/joint_states" not in topics:
         raise LogError(f"{path}: a felis 0.2 log (JSON /state and /command topics); this felis reads the Foxglove "
@@ -894,37 +899,27 @@ def channel_messages(path: str | Path, topics: set[str] | None = None) -> dict[s
     ``/phase``, …). ``topics`` limits it. Foxglove's Protobuf channels are left to `read_log`."""
     path = Path(path)
     records, _ = _records(path)
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
+    schemas, _, raw = _messages(records)
+    if not raw.get("/meta"):
+        raise LogError(f"{path}: not a felis run log (no /meta message)")
+    start = raw["/meta"][0][0]
     out: dict[str, list[tuple[int, dict]]] = {}
-    start = None
-    for rec in records:
-        if isinstance(rec, Schema):
-            schemas[rec.id] = rec
-        elif isinstance(rec, Channel):
-            channels[rec.id] = rec
-        elif isinstance(rec, Message):
-            ch = channels.get(rec.channel_id)
-            if ch is None:
-                continue
-            if ch.topic == "/meta" and start is None:
-                start = rec.log_time
-            if topics is not None and ch.topic not in topics:
-                continue
+    for topic, items in raw.items():
+        if topics is not None and topic not in topics:
+            continue
+        for ns, data, ch in items:
             sch = schemas.get(ch.schema_id)
             try:
                 if ch.message_encoding == "json":
-                    msg = json.loads(rec.data)
+                    msg = json.loads(data)
                 elif ch.message_encoding == "protobuf" and sch is not None and sch.name.startswith("felis."):
-                    msg = as_dict(protobuf_class(sch.name, sch.data).FromString(rec.data))
+                    msg = as_dict(protobuf_class(sch.name, sch.data).FromString(data))
                 else:
-                    continue
+                    continue  # Foxglove's Protobuf channels: `read_log`'s
             except Exception:  # noqa: BLE001 - any decoding failure is the same fault for the user
-                raise LogError(f"{path}: a {ch.topic} message cannot be decoded ({ch.message_encoding})") from None
+                raise LogError(f"{path}: a {topic} message cannot be decoded ({ch.message_encoding})") from None
             if isinstance(msg, dict):
-                out.setdefault(ch.topic, []).append((rec.log_time, msg))
-    if start is None:
-        raise LogError(f"{path}: not a felis run log (no /meta message)")
+                out.setdefault(topic, []).append((ns, msg))
     return {t: [((ns - start) / 1e9, m) for ns, m in items] for t, items in out.items()}
 
 
