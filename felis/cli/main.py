@@ -31,10 +31,14 @@ from felis.cli import (
     monitor,
     output,
     phase,
+    pose,
+    replay,
     run,
     servo,
     sim,
     sysid,
+    table,
+    teleop,
     virtualbus,
 )
 from felis.errors import FelisError, UsageError
@@ -42,9 +46,11 @@ from felis.shutdown import EXIT_INTERRUPTED, signals
 
 EXIT_ERROR, EXIT_USAGE = output.EXIT_ERROR, output.EXIT_USAGE
 
-# doctor, demo, run; the bus commands (find-port … monitor); virtual-bus; calibration (setup-motors …
+# doctor, demo, run, replay, teleop, pose; the bus commands (find-port … monitor, dump/restore);
+# virtual-bus; calibration (setup-motors …
 # check-eeprom); sysid; phase; train and eval; ik; sim; log
-COMMANDS = (doctor, demo, run, dxl, servo, monitor, virtualbus, calib, sysid, phase, learn, ik, sim, log)
+COMMANDS = (doctor, demo, run, replay, teleop, pose, dxl, servo, table, monitor, virtualbus, calib, sysid, phase, learn,
+            ik, sim, log)
 SIMULATING = ("demo", "sim", "run", "virtual-bus")  # commands that may render: MUJOCO_GL=egl without a display
 
 

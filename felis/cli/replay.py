@@ -1,0 +1,7 @@
+"""(being written) felis replay commands."""
+
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    """Add this module's commands to the ``felis`` sub-commands."""
