@@ -65,6 +65,7 @@ from felis.drivers.virtual.memory import (
     GOAL_POSITION,
     GOAL_VELOCITY,
     HOMING_OFFSET,
+    ID,
     MOVING,
     MOVING_THRESHOLD,
     OPERATING_MODE,
@@ -76,6 +77,7 @@ from felis.drivers.virtual.memory import (
     WATCHDOG_ERROR,
     WATCHDOG_UNIT_S,
 )
+from felis.errors import ParameterError
 from felis.servos import PWM_LIMIT, RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, TICKS_PER_REV, ServoModel
 
 CENTRE = CENTRE_TICK
@@ -509,6 +511,33 @@ class HornModel:
         """Profile Velocity as horn speed (rad/s); 0 = unlimited."""
         return I32.unpack_from(self.mem, PROFILE_VELOCITY)[0] * RAD_S_PER_VELOCITY_UNIT
 
+    def hold_by_hand(self, q: float | Callable[[float], float] | None) -> None:
+        """A hand on the joint (teaching by hand, a leader arm): while torque is off the horn sits where the hand
+        puts it, ``q`` in joint units through the mounting, or ``q(t)`` with t in seconds of the servo's clock
+        since this call (the hand's speed shows as Present Velocity). ``None`` lets go: the horn stays where the
+        hand left it. While torque is on the servo holds its goal and the hand is ignored (a held horn is not
+        backdriven here); a simulated horn (``external``) belongs to the physics and refuses a hand."""
+        if self.external:
+            raise ParameterError(f"servo {self.mem[ID]}: its horn is simulated; move the simulated joint instead")
+        self._advance()
+        if q is None:
+            self.__dict__.pop("_hand", None)
+            return
+        fn = q if callable(q) else (lambda t, _q=float(q): _q)
+        self._hand = (fn, self.clock())
+        self._advance()
+
+    def _by_hand(self) -> None:
+        """The hand's pose now (`hold_by_hand`), while torque is off."""
+        fn, t0 = self._hand
+        t = self.clock() - t0
+        q, q_before = float(fn(t)), float(fn(max(t - 1e-3, 0.0)))
+        if not math.isfinite(q):
+            raise ParameterError(f"servo {self.mem[ID]}: the hand's position {q} is not finite")
+        theta = self.mount.horn(q)
+        self._omega = (theta - self.mount.horn(q_before)) / 1e-3 if t >= 1e-3 else 0.0
+        self._theta, self._torque = theta, 0.0
+
     def set_present(self, theta: float, omega: float, torque: float) -> None:
         """Horn state from outside (simulation): angle (rad), speed (rad/s), torque (N·m)."""
         self._theta, self._omega, self._torque = theta, omega, torque
@@ -536,6 +565,8 @@ class HornModel:
             self.check_watchdog()
         if not self.external:
             self._integrate()
+            if "_hand" in self.__dict__ and not self.mem[TORQUE_ENABLE]:
+                self._by_hand()
             self._refresh()
 
 

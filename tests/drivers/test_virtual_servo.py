@@ -63,6 +63,33 @@ def test_standalone_dynamics_follow_the_goal():
     assert s.angle == held
 
 
+def test_a_hand_moves_the_horn_only_while_torque_is_off():
+    """`hold_by_hand`: the pose a hand gives a torque-off joint shows as Present Position (and its speed as Present
+    Velocity); with torque on the servo holds its goal; letting go leaves the horn where the hand left it."""
+    from felis.drivers.virtual.horn import Mount
+
+    clock = FakeClock()
+    s = VirtualServo(XL330, 1, BAUD, clock=clock, mount=Mount(direction=-1))
+    s.hold_by_hand(0.5)
+    assert s.q == pytest.approx(0.5, abs=RAD_PER_TICK) and s.get("present_position") == 2048 - round(0.5 / RAD_PER_TICK)
+    s.hold_by_hand(lambda t: 0.2 * t)  # 0.2 rad/s of joint
+    clock.t = 1.0
+    assert s.q == pytest.approx(0.2, abs=RAD_PER_TICK)
+    assert s.get("present_velocity") == round(-0.2 / RAD_S_PER_VELOCITY_UNIT)
+    assert s.write(GOAL_POSITION, s.get("present_position").to_bytes(4, "little")) == 0
+    assert s.write(TORQUE, b"\x01") == 0
+    clock.t = 3.0
+    assert s.q == pytest.approx(0.2, abs=2 * RAD_PER_TICK)  # held at its goal, the hand ignored
+    assert s.write(TORQUE, b"\x00") == 0
+    clock.t = 3.5
+    assert s.q == pytest.approx(0.7, abs=RAD_PER_TICK)  # the hand again
+    s.hold_by_hand(None)
+    clock.t = 5.0
+    assert s.q == pytest.approx(0.7, abs=RAD_PER_TICK)
+    with pytest.raises(Exception, match="not finite"):
+        s.hold_by_hand(math.nan)
+
+
 def test_position_frame_drive_mode_and_homing_offset():
     s = VirtualServo(XM430, 1, BAUD, clock=FakeClock())
     s.angle = 0.5
