@@ -35,6 +35,7 @@ from felis.errors import FelisError, ModelMismatch, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State, Truth
 from felis.servos import servo_model
 from felis.sim.servo import (
+    Controller,
     JointActuators,
     Profile,
     ServoParams,
@@ -152,8 +153,9 @@ class MujocoRobot(RobotBase):
 
     def __init__(self, spec: RobotSpec, model: str | Path | None = None,
                  servo: dict[str, ServoParams] | None = None, quantize: bool = True, fixed_base: bool = False,
-                 edit: Callable[[mujoco.MjSpec], None] | None = None):
+                 edit: Callable[[mujoco.MjSpec], None] | None = None, full_controller: bool = False):
         super().__init__(spec)
+        self.full_controller = full_controller
         self.fixed_base = fixed_base
         self._edit = edit
         self._model_file = Path(model) if model is not None else model_path(spec)
@@ -173,8 +175,9 @@ class MujocoRobot(RobotBase):
     def _connect(self) -> None:
         spec = self.spec
         self._ctl = [controller(j, self._servo_override.get(j.name)) for j in spec.joints]
-        needs = [(j.name, c.ki > 0, c.kd > 0 or c.kff1 > 0 or c.kff2 > 0) for j, c in zip(spec.joints, self._ctl,
-                                                                                          strict=True)]
+        full = self.full_controller
+        needs = [(j.name, full or c.ki > 0, full or c.kd > 0 or c.kff1 > 0 or c.kff2 > 0)
+                 for j, c in zip(spec.joints, self._ctl, strict=True)]
         user_edit = self._edit
 
         def edit(ms: mujoco.MjSpec) -> None:
@@ -231,8 +234,7 @@ class MujocoRobot(RobotBase):
         self._iact = np.array([m.actuator_actadr[a.integral] for a in self._acts if a.integral >= 0], dtype=int)
         self._fctrl = np.array([m.actuator_ctrladr[a.feedforward] for a in self._acts if a.feedforward >= 0], dtype=int)
         self._fpos = np.array([i for i, a in enumerate(self._acts) if a.feedforward >= 0], dtype=int)
-        self._fgain = np.array([(c.kd + c.kff1, c.kff2) for c, a in zip(self._ctl, self._acts, strict=True)
-                                if a.feedforward >= 0]).reshape(-1, 2)
+        self._set_fgain()
         self._profiles: list[Profile] | None = None
         self._sensors(m)
         W = mujoco.mjtWarning
@@ -240,6 +242,23 @@ class MujocoRobot(RobotBase):
         self._faults = Faults.none(n)
         self._set_torque(np.zeros(n, dtype=bool))
         self._reset_data()
+
+    def _set_fgain(self) -> None:
+        self._fgain = np.array([(c.kd + c.kff1, c.kff2) for c, a in zip(self._ctl, self._acts, strict=True)
+                                if a.feedforward >= 0]).reshape(-1, 2)
+
+    def set_controller(self, joint: int, ctl: Controller) -> None:
+        """Joint ``joint``'s firmware controller (joint units, `felis.sim.servo.controller`) from now on, e.g.
+        gains written to a servo-in-the-loop servo. Its integral state is kept. An I, D or feedforward gain the
+        model has no actuator for is a `ModelMismatch` (build with ``full_controller=True`` to allow any)."""
+        acts = self._acts[joint]
+        if (ctl.ki > 0 and acts.integral < 0) or ((ctl.kd > 0 or ctl.kff1 > 0 or ctl.kff2 > 0)
+                                                 and acts.feedforward < 0):
+            raise ModelMismatch(f"joint {self.spec.names[joint]!r}: the model was built without the actuators for "
+                                f"I, D or feedforward gains (MujocoRobot(..., full_controller=True))")
+        self._ctl[joint] = ctl
+        configure_joint(self.model, acts, ctl, bool(self._torque[joint]))
+        self._set_fgain()
 
     def _reset_data(self) -> None:
         m, d = self.model, self.data

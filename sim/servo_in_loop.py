@@ -15,7 +15,15 @@ timesteps, at most 20 per iteration; a longer lag is skipped, not caught up, and
 copies Goal Position (through the mounting, below), the Torque Enable mask (always the full mask) and
 Profile Velocity (``dq_max``, None when all are 0; a 0 among others is unlimited) into a
 `felis.hal.Command` when any servo's memory changed, and copies the quantised q, dq and effort back
-into every servo's present items. ``servo_params`` and ``fixed_base`` pass through to the model
+into every servo's present items. The firmware's controller that a servo's memory sets (operating mode 3, 4
+or 5, Position P/I/D, Feedforward gains, PWM Limit, Goal Current in mode 5:
+`felis.drivers.virtual.VirtualServo.firmware_controller`) becomes its joint's MuJoCo controller when those
+bytes change, so gains a host writes (`felis.drivers.dynamixel.DynamixelRobot` writes the description's,
+sysid its trial gains) act on the simulated joint as on the real one, and until a host writes them the joint
+runs the factory gains the servo boots with; the model carries the integral and feedforward actuators of every
+joint for that (``full_controller``). A joint given fitted ``servo_params`` keeps its fitted controller.
+Velocity mode (1) is emulated on a bare servo only: a simulated joint keeps its position controller.
+``servo_params`` and ``fixed_base`` pass through to the model
 (`felis.sim.robot.MujocoRobot`: per-joint servo parameters, the robot hung on a stand). Mounting, per joint::
 
     θ = direction·q / m_per_rad + zero + mount_offset          (JointSpec fields; offset default 0)
@@ -53,6 +61,7 @@ import mujoco
 import numpy as np
 
 from felis.drivers.virtual import VirtualBus, VirtualServo, check_imu_mount
+from felis.drivers.virtual.memory import OPERATING_MODE
 from felis.drivers.virtual.process import main
 from felis.errors import ParameterError
 from felis.hal import Command
@@ -152,7 +161,8 @@ class MujocoBackend:
         spec = bus.spec
         servos: list[VirtualServo] = bus.servos
         self.bus, self.spec, self.servos = bus, spec, servos
-        self.robot = MujocoRobot(spec, servo=dict(servo_params or {}), fixed_base=fixed_base)
+        self._fitted = dict(servo_params or {})
+        self.robot = MujocoRobot(spec, servo=self._fitted, fixed_base=fixed_base, full_controller=True)
         self.robot.connect()
         self.robot.arm()
         self.drop_info = None
@@ -161,6 +171,7 @@ class MujocoBackend:
         self.dt = float(self.robot.model.opt.timestep)
         self.mounts = [s.mount for s in servos]
         self._revisions: tuple[int, ...] = ()
+        self._controllers: list = [None] * len(servos)  # the firmware controller each joint runs (`_sync_gains`)
         self.imu: tuple | None = None
         self._held = True  # physics waits until torque first comes on (`_run`)
         self._reaction = -np.asarray(self.robot.model.opt.gravity, dtype=float)  # specific force at rest, world
@@ -223,12 +234,25 @@ class MujocoBackend:
         if revisions == self._revisions:
             return
         self._revisions = revisions
+        self._sync_gains()
         q = np.array([m.joint(s.goal_angle()) for s, m in zip(self.servos, self.mounts, strict=True)])
         torque = np.array([s.torque_enabled for s in self.servos], dtype=bool)
         speed = np.array([abs(s.profile_speed() * m.m_per_rad) for s, m in zip(self.servos, self.mounts,
                                                                                  strict=True)])
         dq_max = None if not speed.any() else np.where(speed > 0, speed, np.inf)
         self.robot.write(Command(q=q, dq_max=dq_max, torque=torque))
+
+    def _sync_gains(self) -> None:
+        """Each servo's firmware controller (module doc) → its joint's MuJoCo actuators, when its bytes changed
+        (`firmware_controller` returns the same object while they have not). A joint with fitted ``servo_params``
+        keeps its fitted controller."""
+        for i, (s, m) in enumerate(zip(self.servos, self.mounts, strict=True)):
+            if s.mem[OPERATING_MODE] not in (3, 4, 5) or self.spec.names[i] in self._fitted:
+                continue
+            fw = s.firmware_controller()
+            if fw is not self._controllers[i]:
+                self._controllers[i] = fw
+                self.robot.set_controller(i, fw.through(m.m_per_rad))
 
     def _publish(self, state) -> None:
         """Sim state → servo present items (bus lock held)."""

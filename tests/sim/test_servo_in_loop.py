@@ -54,3 +54,33 @@ def test_bus_run_ends_within_two_ticks_of_the_direct_run(robot):
     print(f"\n{robot}: max |q_bus - q_direct| = {err.max():.4f} rad; max error/budget = {(err / budget).max():.2f}")
     assert np.all(err <= budget), {n: (round(e, 4), round(b, 4)) for n, e, b in zip(spec.names, err, budget,
                                                                                        strict=True) if e > b}
+
+
+def test_gains_written_on_the_bus_reach_the_simulated_joint():
+    """The firmware controller a servo's memory sets drives its MuJoCo joint (`MujocoBackend._sync_gains`):
+    the arm's shoulder, loaded by gravity in ``stand``, sags with the integral gain written to 0 over the bus and
+    comes back onto its goal when Position I is written again."""
+    from felis.sim.servo_in_loop import virtual_bus
+
+    spec = load_spec("arm")
+    i = spec.names.index("joint2")
+    with virtual_bus("arm", sim=True) as vb, DynamixelRobot(spec, vb.port) as hw:
+        bus, sid = hw.bus, spec.joints[i].servo_id
+        robot = vb.backend.robot
+        hw.arm()
+        run_loop(hw, PoseController("stand", duration=0.5), duration=1.0, rate_hz=RATE, clock="wall")
+        assert robot._ctl[i].ki > 0  # the description's 800/100/100, written by DynamixelRobot
+
+        def error_after(seconds: float) -> float:
+            run_loop(hw, PoseController("stand", duration=0.1), duration=seconds, rate_hz=RATE, clock="wall")
+            return abs(float(hw.read().q[i] - goal[i]))
+
+        goal = spec.poses["stand"].copy()
+        bus.write(sid, "position_i_gain", 0, raw=True)
+        sag = error_after(1.5)
+        assert robot._ctl[i].ki == 0.0 and robot.model.actuator_gainprm[robot._acts[i].integral, 0] == 0.0
+        bus.write(sid, "position_i_gain", 400, raw=True)
+        held = error_after(3.0)
+        print(f"\njoint2 under gravity: {sag / RAD_PER_TICK:.1f} ticks from its goal without I, "
+              f"{held / RAD_PER_TICK:.1f} with")
+        assert sag > 3 * RAD_PER_TICK and held < sag / 3
