@@ -13,12 +13,21 @@ its range. A reading that jumps by more than half a turn between polls has wrapp
 0/4095 seam and the range is refused, as are ranges under 2° wide, ranges without the reference
 pose and ranges past the description's limits (`calfile.check_range`).
 
+Operating modes: each servo must already run its joint's mode (the description's; `felis check-eeprom
+--apply` sets it), else calibration stops before writing. In extended (4) and current-based position (5) mode
+the servo counts turns from power-up, so Present Position does not wrap at 0/4095: a servo that has turned
+since power-up is rebooted first (torque is off) so that its count starts again in one turn, as it will after
+the next power cycle, and a sweep leaving one turn is refused for the same reason (after a power cycle the
+servo would read that joint a turn off).
+
 Everything is measured and checked before anything is written: Homing Offsets (EEPROM, torque off)
 first, then Min/Max Position Limit, then the file (atomically, previous version kept). The
 direction of each joint comes from the description.
 """
 
 from __future__ import annotations
+
+import time
 
 from felis.calib.calfile import (
     CENTRE,
@@ -39,6 +48,7 @@ from felis.errors import CalibrationError, CommError
 from felis.spec import JointSpec, RobotSpec
 
 HOMING_OFFSET, MIN_LIMIT, MAX_LIMIT, PRESENT_POSITION = 20, 52, 48, 132
+MULTI_TURN = (4, 5)  # operating modes whose Present Position counts turns (extended, current-based position)
 
 
 def _i32(b: bytes) -> int:
@@ -80,6 +90,40 @@ def read_i32(bus: DynamixelBus, joints: list[JointSpec], addr: int) -> dict[str,
     return {j.name: _i32(res.data[j.servo_id]) for j in joints}
 
 
+def check_modes(bus: DynamixelBus, joints: list[JointSpec]) -> None:
+    """Each servo runs its joint's operating mode (module doc); one line naming those that do not."""
+    wrong = []
+    for j in joints:
+        mode = bus.read(j.servo_id, "operating_mode", raw=True)
+        if mode != j.operating_mode:
+            wrong.append(f"{j.name} (ID {j.servo_id}) runs mode {mode}, the description says {j.operating_mode}")
+    if wrong:
+        raise CalibrationError("; ".join(wrong) + ": run `felis check-eeprom --apply` first, then calibrate")
+
+
+def restart_turn_count(bus: DynamixelBus, joints: list[JointSpec], operator: Operator | None = None) -> list[str]:
+    """Reboot the servos of extended/current-based position joints whose reading has left one turn since
+    power-up (module doc), so that they count from the encoder's one turn again; returns their names."""
+    multi = [j for j in joints if j.operating_mode in MULTI_TURN]
+    if not multi:
+        return []
+    held = read_i32(bus, multi, HOMING_OFFSET)
+    present = read_i32(bus, multi, PRESENT_POSITION)
+    turned = [j for j in multi if not 0 <= present[j.name] - held[j.name] <= 4095]
+    for j in turned:
+        bus.reboot(j.servo_id)
+    for j in turned:  # a servo answers again once it has booted (tens of ms on hardware)
+        deadline = time.monotonic() + 2.0
+        while bus.try_ping(j.servo_id) is None:
+            if time.monotonic() > deadline:
+                raise CommError(f"joint {j.name}: servo {j.servo_id} did not answer within 2 s of its reboot")
+            time.sleep(0.02)
+    if turned and operator is not None:
+        operator.say("rebooted " + ", ".join(j.name for j in turned) + ": they had turned since power-up and count "
+                     "turns again from one")
+    return [j.name for j in turned]
+
+
 def homing_offsets(bus: DynamixelBus, joints: list[JointSpec]) -> dict[str, int]:
     """Homing Offsets that put each joint's current pose on its zero tick (checked, not written)."""
     held = read_i32(bus, joints, HOMING_OFFSET)
@@ -118,7 +162,7 @@ class Sweep:
             now = {}
         for name, p in now.items():
             if abs(p - self.last[name]) > CENTRE or not 0 <= p <= 4095:
-                self.seam[name] = True  # wrapped across 0/4095 (or outside one turn)
+                self.seam[name] = True  # wrapped across 0/4095 (position mode), or left one turn (modes 4, 5)
             self.lo[name] = min(self.lo[name], p)
             self.hi[name] = max(self.hi[name], p)
             self.last[name] = p
@@ -133,6 +177,11 @@ class Sweep:
         out = {}
         for j in self.joints:
             lo, hi = self.lo[j.name], self.hi[j.name]
+            if self.seam[j.name] and j.operating_mode in MULTI_TURN:
+                raise CalibrationError(f"joint {j.name}: the readings left one turn (0…4095) during the sweep; in "
+                                       f"mode {j.operating_mode} the servo forgets its turn count at power-up and "
+                                       "would then read this joint a turn off: remount the horn so the travel stays "
+                                       "inside one turn, then calibrate again")
             if self.seam[j.name]:
                 raise CalibrationError(f"joint {j.name}: the readings wrapped across the 0/4095 seam during the "
                                        "sweep; position mode cannot hold that range: remount the horn so the travel "
@@ -160,10 +209,12 @@ def calibrate(bus: DynamixelBus, spec: RobotSpec, robot_id: str, operator: Opera
             raise CalibrationError(f"calibrating only {', '.join(j.name for j in chosen)} needs a complete file for "
                                    f"the rest: {e}") from None
     info = check_servos(bus, chosen)
+    check_modes(bus, chosen)
     ids = [j.servo_id for j in chosen]
     bus.torque(ids, False)
     operator.wait(f"Put the {spec.name} in its reference pose (docs/calibration.md: every joint at its model zero) "
                   "and hold it still")
+    restart_turn_count(bus, chosen, operator)
     held = read_i32(bus, chosen, HOMING_OFFSET)
     offsets = homing_offsets(bus, chosen)
     for j in chosen:

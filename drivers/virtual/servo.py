@@ -12,6 +12,8 @@ Address mapping, ``get``/``set``), hardware errors, and what a write changes bes
 
 from __future__ import annotations
 
+import math
+
 import time
 from collections.abc import Callable, Iterable
 
@@ -117,6 +119,8 @@ class VirtualServo(Instructions, HornModel):
         self._registered = None
         self._latched = False
         self._omega = self._torque = 0.0
+        if not self.external:  # the absolute encoder knows one turn: extended position's turn count starts again
+            self._theta = math.remainder(self._theta, 2.0 * math.pi)
         self._cache_settings()
         self._map_indirect()
         self._last_rx = self.clock()

@@ -267,6 +267,38 @@ def test_calibrating_a_subset_keeps_the_rest_and_needs_a_file():
     assert load(calfile.backup_path(path), spec) == first
 
 
+def test_calibration_knows_the_operating_mode():
+    """A servo in another mode than its joint's is refused before anything is written; an extended-position joint
+    (mode 4) that has turned twice since power-up is rebooted so that it counts from one turn, as it will after
+    the next power cycle, and calibrates to its zero."""
+    from dataclasses import replace
+
+    arm = load_spec("arm")
+    spec = replace(arm, joints=tuple(replace(j, operating_mode=4) if j.name == "joint4" else j for j in arm.joints))
+    vb = VirtualBus.for_robot(spec, mount_offsets=_offsets(spec, 6, 30.0))
+    hands = Hands(vb, spec)
+    wrist = vb.servo(spec.joints[spec.names.index("joint4")].servo_id)
+    def pose_after_two_turns(message):
+        hands.on_wait(message)
+        wrist.angle = wrist.angle + 4 * math.pi  # the same horn angle, two turns on the servo's count
+
+    with vb:
+        with DynamixelBus(vb.port, 1_000_000) as bus:
+            gripper = vb.servo(spec.joints[spec.names.index("gripper")].servo_id)
+            gripper.set("operating_mode", 3)
+            with pytest.raises(CalibrationError, match=r"gripper \(ID 15\) runs mode 3, the description says 5"):
+                calibrate(bus, spec, "arm4", ScriptedOperator(hands.on_wait, hands.on_sweep))
+            gripper.set("operating_mode", 5)
+            assert all(s.get("homing_offset") == 0 for s in vb.servos)
+            op = ScriptedOperator(pose_after_two_turns, hands.on_sweep)
+            cal, _ = calibrate(bus, spec, "arm4", op)
+        hands.pose()
+        assert any("rebooted joint4" in m for m in op.log), op.log
+        assert abs(wrist.get("present_position") - zero_tick(spec.joints[3])) <= 1
+        with DynamixelRobot(spec, vb.port, calibration=cal.for_robot(spec)) as robot:
+            assert np.max(np.abs(robot.read().q) / RAD_PER_TICK) <= 1.0
+
+
 @pytest.mark.parametrize("case, expect", [
     ("overflow", "Homing Offset holds at most ±90°"),
     ("unswept", "was not swept"),
