@@ -9,7 +9,9 @@ a GIL, as with real hardware. Three parts:
 
 (a) wire-time modelling off: cycles/s of ``DynamixelRobot.read() + write()`` against the loop a
     ``dynamixel-sdk`` user writes by hand (``GroupSyncRead`` at 126×10 with 36 ``getData`` calls,
-    ``GroupSyncWrite`` at 116×4 with ``changeParam``) in the same run; blocks interleaved, ratio =
+    ``GroupSyncWrite`` at 116×4 with ``changeParam``, torque on as felis's loop has it, so that both loops
+    pay for the emulated servos' dynamics, the firmware controller on a one-joint MuJoCo model) in the same
+    run; blocks interleaved, ratio =
     median of per-pair ratios. felis is measured with its default (Fast Sync Read) and with plain
     sync read. Goal ≥ 0.8.
 (b) wire-time modelling at 4 Mbps, Return Delay 0: felis's achieved rate against the wire ceiling
@@ -63,6 +65,8 @@ def bare_sdk(port_name: str, ids: list[int], seconds: float, indirect: tuple[int
     for i in ids:
         reader.addParam(i)
         writer.addParam(i, [0, 8, 0, 0])
+    for i in ids:  # powered, as felis's loop drives them: the emulated servos then move in both loops
+        ph.write1ByteTxRx(port, i, 64, 1)
     n = 0
     t0 = time.perf_counter()
     try:
@@ -83,8 +87,11 @@ def bare_sdk(port_name: str, ids: list[int], seconds: float, indirect: tuple[int
             writer.txPacket()
             n += 1
     finally:
+        rate = n / (time.perf_counter() - t0)
+        for i in ids:
+            ph.write1ByteTxRx(port, i, 64, 0)
         port.closePort()
-    return n / (time.perf_counter() - t0)
+    return rate
 
 
 def felis_cycles(robot: DynamixelRobot, seconds: float | None = None, cycles: int | None = None) -> dict:
