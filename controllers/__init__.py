@@ -5,6 +5,7 @@ They import only `felis` core, `felis.scenarios` and the inference modules of `f
 so each runs unchanged on simulated and real robots. `make_controller` builds one by name for the CLI.
 
     pose.py          PoseController: hold, stand, sit, or any pose with time-based interpolation
+    keyframes.py     KeyframeController: minimum-jerk moves through taught or named poses (felis pose play)
     stepping.py      SteppingController: the cat trots in place
     balance.py       BalanceMonitor: the XCoM balance monitor (seed 004)
     reactions.py     protective reactions and ReactiveController, which runs them on the monitor's alarm
@@ -21,6 +22,7 @@ from collections.abc import Callable
 
 from felis.controllers.arm_track import LEAD_IN, ArmTrackController, trajectory_from
 from felis.controllers.balance import BalanceMonitor
+from felis.controllers.keyframes import keyframes
 from felis.controllers.landing import LandingController
 from felis.controllers.pose import PoseController
 from felis.controllers.reactions import FEATURES, REACTIONS, ReactiveController
@@ -116,6 +118,7 @@ CONTROLLERS: dict[str, Callable[..., Controller]] = {
     "step-in-place": _step_in_place,
     "balance": _balance,
     "landing": _landing,
+    "keyframes": keyframes,
 }
 
 

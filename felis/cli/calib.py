@@ -238,7 +238,7 @@ def cmd_cal_list(args) -> int:
     from felis.calib.calfile import config_dir, stale_temps
 
     root = config_dir()
-    files = sorted(root.glob("*/*.json")) if root.is_dir() else []
+    files = sorted(f for f in root.glob("*/*.json") if not f.name.endswith(".poses.json")) if root.is_dir() else []
     rows = [{"robot": f.parent.name, "robot_id": f.stem, "file": str(f)} for f in files]
     temps = [str(t) for d in (root.glob("*") if root.is_dir() else []) for t in stale_temps(d)]
     _emit(args, {"dir": str(root), "calibrations": rows, "stale_temps": temps},
