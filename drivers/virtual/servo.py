@@ -13,7 +13,6 @@ Address mapping, ``get``/``set``), hardware errors, and what a write changes bes
 from __future__ import annotations
 
 import math
-
 import time
 from collections.abc import Callable, Iterable
 
