@@ -159,37 +159,49 @@ def test_close_is_idempotent_and_exit_closes_on_exception(tmp_path, spec):
 # crash safety
 
 CHILD = textwrap.dedent("""
-    import sys
+    import sys, time
     import numpy as np
     from felis.hal import Command, Imu, State
-    from felis.logs.runlog import RunLog
+    from felis.logs.runlog import FLUSH_WALL_S, RunLog
     from felis.spec import load_spec
     spec = load_spec("cat")
-    stop = int(sys.argv[2])
+    stop, paced = int(sys.argv[2]), sys.argv[3] == "paced"
     log = RunLog(sys.argv[1], spec)
     imu = Imu(quat=np.array([1.0, 0, 0, 0]), gyro=np.zeros(3), accel=np.array([0, 0, 9.81]))
-    for i in range(stop + 1):
+    t0 = time.monotonic()
+    wall = []
+    i = 0
+    while i <= stop if paced else time.monotonic() - t0 < 0.3:  # fast: as many ticks as 0.3 s of wall time takes
         t = i * 0.01
+        if paced:  # as hardware runs: tick i at t0 + t
+            time.sleep(max(0.0, t0 + t - time.monotonic()))
+        wall.append(time.monotonic())
         log.state(State(t=t, q=np.full(spec.n, float(i)), dq=np.zeros(spec.n), height=0.2, imu=imu))
         log.command(t, Command(q=np.full(spec.n, float(i))))
         if i % 25 == 0:
             log.event(t, "tick", i=i)
-    print(stop, flush=True)   # ticks 0..stop are logged: the parent kills us now, while we wait
+        i += 1
+    stop = i - 1
+    recent = sum(w > wall[-1] - FLUSH_WALL_S for w in wall)  # the ticks of the last FLUSH_WALL_S of wall time
+    print(stop, recent, flush=True)   # ticks 0..stop are logged: the parent kills us now, while we wait
     sys.stdin.readline()
 """)
 
 
-@pytest.mark.parametrize("stop", [37, 160])
-def test_killed_process_loses_at_most_the_flush_interval(tmp_path, stop):
+@pytest.mark.parametrize("stop, pace", [(37, "paced"), (160, "paced"), (None, "fast")])
+def test_killed_process_loses_at_most_the_flush_interval(tmp_path, stop, pace):
     """SIGKILL right after tick ``stop`` was logged (the child waits for it, so no race): the log holds every
-    tick up to a few before, in order, without gaps; the loss is at most FLUSH_S of run time plus one tick."""
+    tick up to a few before, in order, without gaps. A run at the pace of the clock loses at most FLUSH_S of run
+    time plus one tick; one faster than real time at most its last FLUSH_WALL_S of wall time, plus one tick."""
     from felis.logs.runlog import FLUSH_S
 
     path = tmp_path / "crash.mcap"
-    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(path), str(stop)], stdin=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(path), str(stop or 0), pace], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
     try:
-        assert proc.stdout.readline().strip() == str(stop), "child writer died early"
+        told, recent = (int(x) for x in proc.stdout.readline().split())
+        assert stop is None or told == stop, "child writer died early"
+        stop = told
         proc.kill()  # SIGKILL: no cleanup, no close()
         proc.wait(timeout=30)
     finally:
@@ -201,8 +213,10 @@ def test_killed_process_loses_at_most_the_flush_interval(tmp_path, stop):
     assert data.complete is False and data.summary is None
     kept = len(data.t)
     lost = stop + 1 - kept
-    print(f"SIGKILL after {stop + 1} ticks: {kept} in the file, {lost} lost (bound {round(FLUSH_S / 0.01) + 1})")
-    assert 0 <= lost <= round(FLUSH_S / 0.01) + 1, f"lost {lost} ticks of {stop + 1}"
+    bound = round(FLUSH_S / 0.01) + 1 if pace == "paced" else recent + 1
+    print(f"SIGKILL after {stop + 1} ticks ({pace}): {kept} in the file, {lost} lost (bound {bound})")
+    assert 0 <= lost <= bound, f"lost {lost} ticks of {stop + 1}"
+    assert kept > 0, "a chunk should have been finished"
     assert len(data.cmd_t) == kept and data.quat is not None and len(data.height) == kept
     np.testing.assert_array_equal(data.q[:, 0], np.arange(kept))  # no gaps, in order
     np.testing.assert_allclose(data.t, np.arange(kept) * 0.01, atol=1e-9)
