@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from felis.drivers.dynamixel.bus import DynamixelBus
+from felis.drivers.dynamixel.trace import PacketTrace, TracedBus
 from felis.drivers.virtual import spawn
 from felis.errors import ParameterError
 
@@ -64,14 +65,15 @@ class Ports:
 def open_ports(port: str | None, *, robot: str = "cat", baud: int = 1_000_000, imu_port: str | None = None,
                bus: bool = True, retries: int = 1, quiet_check: bool = True, sim: bool = False,
                servo_params: str | os.PathLike | None = None, fixed_base: bool = False,
-               drop: Sequence[float] | None = None) -> Iterator[Ports]:
+               drop: Sequence[float] | None = None, trace: PacketTrace | None = None) -> Iterator[Ports]:
     """Open the servo bus named ``port`` (a path, ``virtual``, or None for ``$FELIS_PORT``).
 
     ``virtual`` spawns a virtual bus for ``robot`` at ``baud``; ``sim``, ``servo_params``, ``fixed_base``
     and ``drop`` go to `spawn` (its simulation). ``bus``: also open a `DynamixelBus` (with ``retries``)
     and, with ``quiet_check``, listen 50 ms first and refuse a port that talks unprompted (the IMU's,
     given as the bus: `DynamixelBus.check_quiet`; the emergency stop skips it, it never waits before it
-    sends). ``imu_port``: the IMU's serial device; without one, a virtual bus's simulated IMU.
+    sends). ``imu_port``: the IMU's serial device; without one, a virtual bus's simulated IMU. ``trace``: write
+    every packet of the bus to this `felis.drivers.dynamixel.trace.PacketTrace` (the caller closes it).
     """
     name = resolve(port)
     with contextlib.ExitStack() as stack:
@@ -81,7 +83,8 @@ def open_ports(port: str | None, *, robot: str = "cat", baud: int = 1_000_000, i
                                               fixed_base=fixed_base, drop=drop))
             out.child, out.port, out.imu_port = child, child.port, imu_port or child.imu_port
         if bus:
-            out.bus = stack.enter_context(DynamixelBus(out.port, baud, retries=retries))
+            out.bus = stack.enter_context(DynamixelBus(out.port, baud, retries=retries) if trace is None
+                                          else TracedBus(out.port, baud, retries=retries, trace=trace))
             if quiet_check:
                 out.bus.check_quiet()
         yield out

@@ -6,4 +6,7 @@
     group.py         GroupTransfers: sync / fast-sync / bulk transfers, per-servo counters (ServoStats)
     bus.py           DynamixelBus: ping, scan, read/write by name, retries, guards
     robot.py         DynamixelRobot: the HAL on a bus (+ IMU)
+    tabledump.py     a servo's whole control table: read in blocks, save/load (JSON), diff, restore
+    factoryreset.py  FACTORY_RESET (keep ID / ID+baud / nothing), then the ping where the servo answers
+    trace.py         PacketTrace / TracedBus: every packet, timed and decoded, from the SDK port's bytes
 """

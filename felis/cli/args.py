@@ -9,9 +9,12 @@ parsers report errors as one line, `felis.cli.main.Parser`); a learned skill's m
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+from pathlib import Path
 
 from felis.drivers.dynamixel.bus import SDK_BAUDS
+from felis.drivers.dynamixel.trace import PacketTrace
 from felis.drivers.ports import open_ports
 from felis.errors import UsageError
 
@@ -92,7 +95,14 @@ def bus_args(sp, robot_default: str | None = None) -> None:
     sp.add_argument("--port", help="serial device, or 'virtual' for a virtual bus (default $FELIS_PORT)")
     sp.add_argument("--baud", type=baud_rate, default=1_000_000, help="baud rate (default 1000000)")
     sp.add_argument("--robot", default=robot_default, help="robot for --port virtual (default cat)")
+    trace_option(sp)
     json_option(sp)
+
+
+def trace_option(sp) -> None:
+    """``--trace FILE``: write every bus packet, timed and decoded, to FILE (`felis.drivers.dynamixel.trace`)."""
+    sp.add_argument("--trace", type=Path, metavar="FILE",
+                    help="write every instruction and status packet (time, decoded, hex) to FILE")
 
 
 def live_option(sp, what: str = "serve the run live to Foxglove over WebSocket") -> None:
@@ -122,11 +132,17 @@ def dry_run(p) -> None:
     p.add_argument("--dry-run", action="store_true", help="check everything, write nothing")
 
 
+@contextlib.contextmanager
 def open_bus(args, *, sim: bool = False, retries: int = 1, quiet_check: bool = True):
     """`felis.drivers.ports.open_ports` for ``--port``/``--baud``/``--robot`` (default cat) and, where the
-    command has it, ``--imu-port``: a context manager giving `felis.drivers.ports.Ports` with the bus open."""
-    return open_ports(args.port, robot=getattr(args, "robot", None) or "cat", baud=args.baud,
-                      imu_port=getattr(args, "imu_port", None), sim=sim, retries=retries, quiet_check=quiet_check)
+    command has them, ``--imu-port`` and ``--trace``: a context manager giving `felis.drivers.ports.Ports` with
+    the bus open; the trace is flushed and closed after the bus, whichever way the block is left."""
+    path = getattr(args, "trace", None)
+    with contextlib.ExitStack() as stack:
+        trace = stack.enter_context(PacketTrace(path)) if path is not None else None
+        yield stack.enter_context(open_ports(args.port, robot=getattr(args, "robot", None) or "cat", baud=args.baud,
+                                             imu_port=getattr(args, "imu_port", None), sim=sim, retries=retries,
+                                             quiet_check=quiet_check, trace=trace))
 
 
 # ----------------------------------------------------------------------------- command groups

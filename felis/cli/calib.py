@@ -14,7 +14,7 @@ from pathlib import Path
 from rich.table import Table
 
 from felis.cli import output
-from felis.cli.args import baud_rate, json_option, open_bus
+from felis.cli.args import baud_rate, json_option, open_bus, trace_option
 from felis.errors import CalibrationError, ParameterError
 
 
@@ -291,6 +291,7 @@ def register(sub) -> None:
         if bus:
             sp.add_argument("--port", help="serial device, or 'virtual' for a virtual bus (default $FELIS_PORT)")
             sp.add_argument("--baud", type=baud_rate, default=1_000_000, help="the robot's baud rate (default 1000000)")
+            trace_option(sp)
         sp.add_argument("--id", required=need_id, help="the robot's id: names its calibration file")
         sp.add_argument("--file", help="calibration file path (default: the config directory, by robot and id)")
         sp.add_argument("--yes", action="store_true", help="no prompts: answer yes and go on (for scripts)")
@@ -302,6 +303,7 @@ def register(sub) -> None:
     sm.add_argument("--port", help="serial device, or 'virtual' (default $FELIS_PORT)")
     sm.add_argument("--baud", type=baud_rate, default=1_000_000, help="baud rate to set (default 1000000)")
     sm.add_argument("--yes", action="store_true", help="no prompts (the servo is already the only one connected)")
+    trace_option(sm)
     json_option(sm)
     sm.set_defaults(func=cmd_setup_motors)
 

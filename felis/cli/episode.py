@@ -33,6 +33,7 @@ from pathlib import Path
 
 from felis.controllers import CONTROLLERS, make_controller
 from felis.drivers.dynamixel.robot import DynamixelRobot
+from felis.drivers.dynamixel.trace import PacketTrace, TracedBus
 from felis.drivers.ports import is_virtual, open_ports
 from felis.errors import ParameterError
 from felis.files import check_target
@@ -73,6 +74,7 @@ class Episode:
     controller_options: dict = field(default_factory=dict)  # e.g. arm-track's trajectory
     live: str | None = None  # "[HOST:]PORT": serve the log's channels over the Foxglove WebSocket protocol
     on_live: object | None = None  # called with the live view's ws:// address once it listens (CLI: prints it)
+    trace: Path | None = None  # dxl: write every bus packet here (`felis.drivers.dynamixel.trace`)
 
 
 @dataclass
@@ -325,6 +327,8 @@ class _Dxl:
             from felis.sim.servo_file import load_servo_params  # late: the simulation (MuJoCo)
 
             load_servo_params(ep.servo_params, spec)  # a bad file is one line here, not a failed child process
+        if ep.trace is not None:
+            PacketTrace(ep.trace)  # checks the path, creates nothing: a bad one is one line before anything starts
         _check(ep)
 
     def meta(self) -> dict:
@@ -332,10 +336,13 @@ class _Dxl:
 
     def open(self, stack: contextlib.ExitStack):
         ep, spec = self.ep, self.spec
+        # the trace is closed (flushed) last: after the robot's torque-off on every way out
+        trace = None if ep.trace is None else stack.enter_context(PacketTrace(ep.trace))
         opened = stack.enter_context(open_ports(ep.port, robot=ep.robot, baud=ep.baud, imu_port=ep.imu_port,
                                                 bus=False, sim=True, servo_params=ep.servo_params, drop=ep.drop))
-        calibration = _connect_checks(ep, spec, opened.port)
-        robot = stack.enter_context(DynamixelRobot(spec, opened.port, ep.baud, imu_port=opened.imu_port,
+        calibration = _connect_checks(ep, spec, opened.port, trace)
+        bus = None if trace is None else TracedBus(opened.port, ep.baud, trace=trace)
+        robot = stack.enter_context(DynamixelRobot(spec, opened.port, ep.baud, imu_port=opened.imu_port, bus=bus,
                                                    calibration=calibration, imu_required=self.needs_imu))
         ep.warnings.extend(robot.warnings)
         return robot
@@ -372,7 +379,7 @@ def _drop_info(drop, spec):
     return Drop(roll, pitch, yaw, h)
 
 
-def _connect_checks(ep: Episode, spec, port: str):
+def _connect_checks(ep: Episode, spec, port: str, trace: PacketTrace | None = None):
     """Before the robot connects: load its calibration (if an id or file is given) and check the servos'
     EEPROM settings, applying differences with the operator's confirmation (or ``--yes``).
 
@@ -389,7 +396,7 @@ def _connect_checks(ep: Episode, spec, port: str):
         ep.warnings.append(f"no calibration: joint zeros are the servos' raw centre ticks; run `felis calibrate "
                            f"--robot {spec.name} --id NAME` and pass --robot-id NAME")
     # quiet_check: the IMU's port given as the bus is named so, not as "two servos share an ID"
-    with open_ports(port, baud=ep.baud, quiet_check=True) as opened:
+    with open_ports(port, baud=ep.baud, quiet_check=True, trace=trace) as opened:
         applied = eeprom_check(opened.bus, spec, cal, ConsoleOperator(yes=ep.yes, quiet=True))
     if applied:
         ep.warnings.append(f"applied {len(applied)} EEPROM setting(s): "

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from felis.cli.args import finite, live_option
+from felis.cli.args import finite, live_option, trace_option
 from felis.cli.results import episode, report
 from felis.controllers.arm_track import run_time, trajectory_from
 from felis.errors import ParameterError
@@ -54,6 +54,7 @@ def register(sub) -> None:
     run.add_argument("--selector", type=Path, metavar="FILE",
                      help="balance: a selector file for --reaction selector (default: the shipped one)")
     run.add_argument("--log", type=Path, help="write an MCAP log here (.mcap)")
+    trace_option(run)
     live_option(run)
     run.add_argument("--rate", type=finite, help="control rate in Hz (default: the description's, 100)")
     run.add_argument("--clock", choices=["sim", "wall"], default="sim",
@@ -77,6 +78,8 @@ def cmd_run(args) -> int:
     backend = "dxl" if args.backend in ("dxl", "dynamixel") else args.backend
     if backend == "sim" and args.port is not None:
         raise ParameterError("--port needs --backend dxl")
+    if backend == "sim" and args.trace is not None:
+        raise ParameterError("--trace records the Dynamixel bus: it needs --backend dxl")
     if backend == "sim" and (args.robot_id or args.calibration):
         raise ParameterError("--robot-id and --calibration calibrate servos: they need --backend dxl")
     options: dict = {}
@@ -105,5 +108,6 @@ def cmd_run(args) -> int:
     res = episode(args, robot=args.robot, controller=args.controller, duration=duration, log=args.log, drop=drop,
                   clock="wall" if backend == "dxl" else args.clock, rate_hz=args.rate, backend=backend,
                   port=args.port, baud=args.baud, imu_port=args.imu_port, servo_params=args.servo_params,
-                  robot_id=args.robot_id, calibration=args.calibration, yes=args.yes, controller_options=options)
+                  robot_id=args.robot_id, calibration=args.calibration, yes=args.yes, controller_options=options,
+                  trace=args.trace)
     return report(args, res)
