@@ -180,11 +180,11 @@ def run_loop(
     finished = False  # the loop ended by its own rules, not by an exception
     needs_imu = bool(getattr(controller, "needs_imu", False))
     imu_seen, imu_lost_at = False, None
-    state = _first_read(robot, cfg.read_fail_tolerance)
+    state = first_read(robot, cfg.read_fail_tolerance)
     try:
         if robot.lifecycle is not Lifecycle.ARMED:
             robot.arm()
-            state = _first_read(robot, cfg.read_fail_tolerance)
+            state = first_read(robot, cfg.read_fail_tolerance)
             if log is not None:
                 log.event(state.t, "armed")
         controller.reset(robot.spec, state)
@@ -347,7 +347,7 @@ def _comm_counters(robot: Robot) -> dict[str, int]:
     return out
 
 
-def _first_read(robot: Robot, tolerance: int) -> State:
+def first_read(robot: Robot, tolerance: int) -> State:
     """The state the controller starts from: the watchdog's rule before the first tick.
 
     A failed read (no reply, a corrupt packet) is tried again, up to ``tolerance`` more times, as the

@@ -31,7 +31,7 @@ from felis.controllers.replay import Commands, ReplayController, approach_time
 from felis.errors import ParameterError, UnknownRobotError
 from felis.logs.compare import Comparison, position_error
 from felis.logs.runlog import LogData, RunLog, read_log
-from felis.loop import _first_read, run_loop
+from felis.loop import first_read, run_loop
 from felis.safety import SafetyConfig
 from felis.spec import RobotSpec, load_spec
 
@@ -192,7 +192,7 @@ def cmd_replay(args) -> int:
     with contextlib.ExitStack() as stack:
         robot = backend.open(stack)
         # connected, not armed: where the approach starts (read as the loop's first read is: tried again on a failure)
-        present = _first_read(robot, SafetyConfig().read_fail_tolerance).q
+        present = first_read(robot, SafetyConfig().read_fail_tolerance).q
         approach = args.approach if args.approach is not None else approach_time(spec, present,
                                                                                   commands.at(t_from))
         controller = ReplayController(commands, t_from=t_from, t_to=t_to, speed=args.speed, approach_s=approach)
