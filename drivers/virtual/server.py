@@ -162,6 +162,7 @@ class VirtualBus:
         self._listening: list[VirtualServo] = []
         for s in servos:
             self.add_servo(s)
+        self._reader = P.PacketReader()  # the server thread's (`_serve`); housekeeping asks it what is half read
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         os.set_blocking(self._master, False)
@@ -260,9 +261,12 @@ class VirtualBus:
 
     def housekeeping(self) -> None:
         """What happens on the servos' own clocks, between packets: Bus Watchdog trips and timed faults
-        (called by the server thread and a backend's thread, bus lock held)."""
-        for s in self._listening:
-            if s.mem[BUS_WATCHDOG] and not s.watchdog_tripped:
+        (called by the server thread and a backend's thread, bus lock held). The Bus Watchdog is not judged
+        while the host's bytes wait unread (on the pty, or a packet half read): they arrived before now, and a
+        server thread starved of CPU must not blame its own delay on the host."""
+        armed = [s for s in self._listening if s.mem[BUS_WATCHDOG] and not s.watchdog_tripped]
+        if armed and not self._input_waiting():
+            for s in armed:
                 delay = s.check_watchdog()
                 if delay is not None:
                     self.stats.watchdog_trips.append((s.id, delay))
@@ -279,6 +283,17 @@ class VirtualBus:
                     s.set("torque_enable", 0)
                     self.stats.timed_faults.append((kind, i))
             self._timed = left
+
+    def _input_waiting(self) -> bool:
+        """The host's bytes are on the pty, unread, or a packet is half read."""
+        if self._reader.pending:
+            return True
+        p = select.poll()
+        try:
+            p.register(self._master, select.POLLIN)
+            return any(ev & select.POLLIN for _, ev in p.poll(0))
+        except (OSError, ValueError):  # closed
+            return False
 
     def _busy(self) -> bool:
         """Something on the servos' clocks is pending (an armed Bus Watchdog, a timed fault)."""
@@ -376,7 +391,7 @@ class VirtualBus:
         poller = select.poll()
         poller.register(self._master, select.POLLIN)
         poller.register(self._wake_r, select.POLLIN)
-        reader = P.PacketReader()
+        reader = self._reader = P.PacketReader()
         last_byte = last_housekeeping = 0.0
         while not self._halt:
             self._flush_due()
