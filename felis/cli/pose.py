@@ -15,11 +15,12 @@ written, so bad input is one line and changes nothing.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 from pathlib import Path
 
 from felis.cli import output
-from felis.cli.args import baud_rate, finite, group, json_option, live_option
+from felis.cli.args import baud_rate, finite, group, json_option, live_option, trace_option
 from felis.errors import CalibrationError, ParameterError
 
 DEFAULT_DURATION = 2.0  # s per move when --durations is not given
@@ -107,6 +108,7 @@ def _robot_options(p) -> None:
 def _port_options(p) -> None:
     p.add_argument("--port", help="serial device, or 'virtual' for a virtual bus (default $FELIS_PORT)")
     p.add_argument("--baud", type=baud_rate, default=1_000_000, help="baud rate (default 1000000)")
+    trace_option(p)
 
 
 # ----------------------------------------------------------------------------- the pose file
@@ -152,6 +154,7 @@ def cmd_capture(args) -> int:
     from felis.calib.poses import PoseFile, check_pose_name, save, tick_in_joint_units
     from felis.calib.teach import capture
     from felis.drivers.dynamixel.robot import DynamixelRobot
+    from felis.drivers.dynamixel.trace import PacketTrace, TracedBus
     from felis.drivers.ports import is_virtual, open_ports, resolve
     from felis.files import check_target
 
@@ -170,8 +173,11 @@ def cmd_capture(args) -> int:
     check_target(Path(path), "pose file", CalibrationError)
     op = ConsoleOperator(yes=args.yes, quiet=args.json)
     after = args.after if args.after is not None else (0.0 if args.yes else None)
-    with open_ports(port, robot=spec.name, baud=args.baud, bus=False) as opened:
-        robot = DynamixelRobot(spec, opened.port, args.baud, calibration=cal)
+    with contextlib.ExitStack() as stack:
+        trace = None if args.trace is None else stack.enter_context(PacketTrace(args.trace))  # closed last
+        opened = stack.enter_context(open_ports(port, robot=spec.name, baud=args.baud, bus=False))
+        bus = None if trace is None else TracedBus(opened.port, args.baud, trace=trace)
+        robot = DynamixelRobot(spec, opened.port, args.baud, calibration=cal, bus=bus)
         with robot:
             got = capture(robot, op, name, after_s=after)
         verified = robot.torque_off_verified
@@ -273,8 +279,8 @@ def cmd_play(args) -> int:
 
     spec = _spec(args)
     backend = "dxl" if args.backend in ("dxl", "dynamixel") else "sim"
-    if backend == "sim" and args.port is not None:
-        raise ParameterError("--port needs --backend dxl")
+    if backend == "sim" and (args.port is not None or args.trace is not None):
+        raise ParameterError(f"{'--port' if args.port is not None else '--trace'} needs --backend dxl")
     _, pf, robot_id = _source(args, spec, need_id=False)
     poses = resolve(spec, pf, args.names)
     durs = args.durations or [DEFAULT_DURATION]
@@ -299,7 +305,7 @@ def cmd_play(args) -> int:
         dxl_id = robot_id  # taught poses are read through this calibration: play them through it too
     res = episode(args, robot=args.robot, controller="keyframes", duration=sum(durs) + args.settle, log=args.log,
                   clock="wall" if backend == "dxl" else args.clock, rate_hz=args.rate, backend=backend, port=args.port,
-                  baud=args.baud, robot_id=dxl_id, yes=args.yes,
+                  baud=args.baud, robot_id=dxl_id, yes=args.yes, trace=args.trace,
                   controller_options={"poses": [(p.name, p.q) for p in poses], "durations": durs})
     code = report(args, res)
     if not args.json and res.controller is not None:
