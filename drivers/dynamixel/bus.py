@@ -144,9 +144,10 @@ class DynamixelBus(GroupTransfers, BusPort):
                 return None, res
             tx_len = (txpacket[5] | txpacket[6] << 8) + 7
             port.setPacketTimeoutMillis(self._timeout_ms(tx_len, rx_len, 1))
-            for _ in range(8):  # skip stray replies from other IDs (bounded)
+            for _ in range(8):  # skip stray replies: other IDs, late ones of another length (bounded)
                 pkt, res = ph.rxPacket(port, False)
-                if res != sdk.COMM_SUCCESS or pkt[P_ID] == expect_id:
+                if res != sdk.COMM_SUCCESS or (pkt[P_ID] == expect_id and (len(status_params(pkt)) == rx_len - 11
+                                                                            or pkt[8] & 0x7F)):
                     return pkt, res
             return None, sdk.COMM_RX_CORRUPT
 
@@ -172,7 +173,7 @@ class DynamixelBus(GroupTransfers, BusPort):
             if res == sdk.COMM_SUCCESS:
                 err = pkt[8]
                 data = status_params(pkt)
-                if len(data) < rx_data and not err & 0x7F:
+                if len(data) != rx_data and not err & 0x7F:  # short, or a late reply to an earlier packet
                     st.corrupt += 1
                     last = sdk.COMM_RX_CORRUPT
                     continue

@@ -198,8 +198,8 @@ class GroupTransfers:
                 continue
             i = pkt[P_ID]
             d = status_params(pkt)
-            if i in pending and len(d) >= lengths[i]:
-                got[i] = (pkt[8], bytes(d[: lengths[i]]))
+            if i in pending and len(d) == lengths[i]:  # a late reply to an earlier packet (a PING's 3 bytes) is not it
+                got[i] = (pkt[8], bytes(d))
                 pending.discard(i)
                 if not pending:
                     break

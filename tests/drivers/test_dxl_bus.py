@@ -450,3 +450,23 @@ def test_a_late_reply_is_never_taken_as_the_next_answer(cat_bus):
         cat_bus.faults.delay_ms = 0
         got = int.from_bytes(b.read_raw(1, 116, 4), "little")  # Goal Position, same length
         assert got == 3000, f"read {got}: the late Present Position reply ({present}) taken as the answer"
+
+
+def test_a_late_reply_is_not_taken_for_the_next_answer():
+    """A reply that arrives after its request timed out (a PING's, 3 bytes) is not the answer to the next read of
+    the same servo: a sync read waits for a reply of its own length, a read skips it (the old `>=` took the PING's
+    model number 1020's low byte, 252, for servo 15's operating mode)."""
+    vb = VirtualBus.for_robot("arm")
+    with vb:
+        vb.set_faults("delay_ms=8")
+        with DynamixelBus(vb.port, retries=0, timeout_margin_ms=1) as bus:
+            with pytest.raises(NoReplyError):
+                bus.ping(15)  # its reply comes 8 ms late
+            bus._margin_ms = 30
+            r = bus.sync_read([11, 12, 13, 14, 15], 11, 1, fast=False)
+            assert r.data == {11: b"\x03", 12: b"\x03", 13: b"\x03", 14: b"\x03", 15: b"\x05"}
+            bus._margin_ms = 1
+            with pytest.raises(NoReplyError):
+                bus.ping(15)
+            bus._margin_ms = 30
+            assert bus.read(15, "operating_mode", raw=True) == 5
