@@ -22,6 +22,7 @@ The rules, by layer (a module belongs to the most specific layer whose prefix it
     inference modules              felis core, the other inference modules; numpy; no torch
     the rest of felis.learning     anything but felis.cli
     felis.calib                    felis core, felis.drivers, felis.sim, felis.calib
+    felis.testing                  anything but felis.cli (the pytest plugin: robots, buses, logs for tests)
     felis.cli                      anything
 """
 
@@ -40,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = {"felis.drivers": "drivers", "felis.sim": "sim", "felis.controllers": "controllers",
            "felis.learning": "learning", "felis.calib": "calib", "felis": "felis"}
 SUBPACKAGES = ("felis.cli", "felis.scenarios", "felis.logs", "felis.drivers", "felis.sim", "felis.controllers",
-               "felis.learning", "felis.calib")
+               "felis.learning", "felis.calib", "felis.testing")
 # each skill's inference side: what controllers may import (numpy only; `infer` holds the nets' numpy forward
 # passes and weight readers that the solver and the estimator share with training)
 INFERENCE = ("felis.learning.landing.policy", "felis.learning.ik.solver", "felis.learning.ik.infer",
@@ -72,7 +73,7 @@ def allowed(module: str, imported: str) -> bool:
     felis = imported == "felis" or imported.startswith("felis.")
     if lay == "felis.cli":
         return True
-    if lay == "felis.learning":
+    if lay in ("felis.learning", "felis.testing"):
         return not _is(imported, "felis.cli")
     if lay in ("core", "felis.scenarios", "felis.logs", "inference") and not felis:
         top = imported.split(".")[0]
@@ -176,10 +177,12 @@ def test_the_layering_rules_catch_what_they_should():
     assert not allowed("felis.scenarios.drop", "felis.sim.robot")
     assert not allowed("felis.sim.robot", "felis.controllers.pose")
     assert not allowed("felis.learning.landing.train", "felis.cli.output")
+    assert not allowed("felis.testing.runner", "felis.cli.episode")
     assert allowed("felis.controllers.landing", "felis.learning.landing.policy")
     assert allowed("felis.sim.servo_in_loop", "felis.drivers.virtual.server")
     assert allowed("felis.learning.landing.train", "felis.sim.robot")
     assert allowed("felis.cli.main", "felis.learning.landing.train")
+    assert allowed("felis.testing.resources", "felis.sim.servo_in_loop")
 
 
 _PROBE = r"""

@@ -15,11 +15,7 @@ import numpy as np
 import pytest
 
 from felis.controllers import PoseController
-from felis.drivers.dynamixel.robot import DynamixelRobot
-from felis.drivers.virtual import spawn
-from felis.loop import run_loop
 from felis.servos import RAD_PER_TICK
-from felis.sim import MujocoRobot
 from felis.spec import load_spec
 
 RATE, DURATION = 50.0, 1.0
@@ -34,16 +30,14 @@ class _Record:
 
 
 @pytest.mark.parametrize("robot", ["cat", "arm"])
-def test_bus_run_ends_within_two_ticks_of_the_direct_run(robot):
+def test_bus_run_ends_within_two_ticks_of_the_direct_run(robot, sim_robot, virtual_bus, dxl_robot, run):
     spec = load_spec(robot)
-    direct = _Record()
-    with MujocoRobot(spec) as sim:
-        rep_d = run_loop(sim, PoseController("sit", duration=DURATION), duration=DURATION, rate_hz=RATE,
-                         monitors=[direct])
-    through = _Record()
-    with spawn(robot, sim=True) as vb, DynamixelRobot(spec, vb.port) as hw:
-        rep_b = run_loop(hw, PoseController("sit", duration=DURATION), duration=DURATION, rate_hz=RATE,
-                         clock="wall", monitors=[through])
+    direct, through = _Record(), _Record()
+    rep_d = run(sim_robot(robot), PoseController("sit", duration=DURATION), DURATION, rate=RATE, monitors=[direct],
+                log=False).report
+    hw = dxl_robot(virtual_bus(robot, sim=True, process=True))  # felis.testing: closed, then stopped, at the end
+    rep_b = run(hw, PoseController("sit", duration=DURATION), DURATION, rate=RATE, monitors=[through],
+                log=False).report
     assert rep_d.ok and rep_b.ok and rep_b.stale_ticks == 0 and rep_b.ticks == rep_d.ticks
     qd, qb = rep_d.final_state.q, rep_b.final_state.q
     steps = np.abs(np.diff(np.array(direct.q), axis=0)).max(axis=0)
@@ -56,31 +50,30 @@ def test_bus_run_ends_within_two_ticks_of_the_direct_run(robot):
                                                                                        strict=True) if e > b}
 
 
-def test_gains_written_on_the_bus_reach_the_simulated_joint():
+def test_gains_written_on_the_bus_reach_the_simulated_joint(virtual_bus, dxl_robot, run):
     """The firmware controller a servo's memory sets drives its MuJoCo joint (`MujocoBackend._sync_gains`):
     the arm's shoulder, loaded by gravity in ``stand``, sags with the integral gain written to 0 over the bus and
     comes back onto its goal when Position I is written again."""
-    from felis.sim.servo_in_loop import virtual_bus
-
     spec = load_spec("arm")
     i = spec.names.index("joint2")
-    with virtual_bus("arm", sim=True) as vb, DynamixelRobot(spec, vb.port) as hw:
-        bus, sid = hw.bus, spec.joints[i].servo_id
-        robot = vb.backend.robot
-        hw.arm()
-        run_loop(hw, PoseController("stand", duration=0.5), duration=1.0, rate_hz=RATE, clock="wall")
-        assert robot._ctl[i].ki > 0  # the description's 800/100/100, written by DynamixelRobot
+    vb = virtual_bus("arm", sim=True)
+    hw = dxl_robot(vb)
+    bus, sid = hw.bus, spec.joints[i].servo_id
+    robot = vb.bus.backend.robot
+    hw.arm()
+    run(hw, PoseController("stand", duration=0.5), 1.0, rate=RATE, log=False)
+    assert robot._ctl[i].ki > 0  # the description's 800/100/100, written by DynamixelRobot
 
-        def error_after(seconds: float) -> float:
-            run_loop(hw, PoseController("stand", duration=0.1), duration=seconds, rate_hz=RATE, clock="wall")
-            return abs(float(hw.read().q[i] - goal[i]))
+    def error_after(seconds: float) -> float:
+        run(hw, PoseController("stand", duration=0.1), seconds, rate=RATE, log=False)
+        return abs(float(hw.read().q[i] - goal[i]))
 
-        goal = spec.poses["stand"].copy()
-        bus.write(sid, "position_i_gain", 0, raw=True)
-        sag = error_after(1.5)
-        assert robot._ctl[i].ki == 0.0 and robot.model.actuator_gainprm[robot._acts[i].integral, 0] == 0.0
-        bus.write(sid, "position_i_gain", 400, raw=True)
-        held = error_after(3.0)
-        print(f"\njoint2 under gravity: {sag / RAD_PER_TICK:.1f} ticks from its goal without I, "
-              f"{held / RAD_PER_TICK:.1f} with")
-        assert sag > 3 * RAD_PER_TICK and held < sag / 3
+    goal = spec.poses["stand"].copy()
+    bus.write(sid, "position_i_gain", 0, raw=True)
+    sag = error_after(1.5)
+    assert robot._ctl[i].ki == 0.0 and robot.model.actuator_gainprm[robot._acts[i].integral, 0] == 0.0
+    bus.write(sid, "position_i_gain", 400, raw=True)
+    held = error_after(3.0)
+    print(f"\njoint2 under gravity: {sag / RAD_PER_TICK:.1f} ticks from its goal without I, "
+          f"{held / RAD_PER_TICK:.1f} with")
+    assert sag > 3 * RAD_PER_TICK and held < sag / 3
