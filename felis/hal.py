@@ -109,17 +109,25 @@ class Command:
 
     q: position targets (rad; m for prismatic); dq_max: optional per-joint speed limits (rad/s)
     applied by the backend (Dynamixel Profile Velocity; rate-limited goal in simulation);
-    torque: optional bool mask, False = torque off for that joint (None = all on).
+    torque: optional bool mask, False = torque off for that joint (None = all on);
+    stiffness: optional per-joint compliance, the fraction s ∈ [`MIN_STIFFNESS`, 1] of the joint's Position P
+    gain (the description's) its servo runs with (None = 1, every joint as described): Dynamixel writes
+    P·s to Position P Gain (RAM, one sync write when it changes), MuJoCo scales the position actuator's kp.
+    Only P is scaled: I, D and feedforward stay, so a compliant joint still comes back to its goal.
     """
 
     q: np.ndarray
     dq_max: np.ndarray | None = None
     torque: np.ndarray | None = None
+    stiffness: np.ndarray | None = None
 
     def replace(self, **changes) -> Command:
-        values = {"q": self.q, "dq_max": self.dq_max, "torque": self.torque}
+        values = {"q": self.q, "dq_max": self.dq_max, "torque": self.torque, "stiffness": self.stiffness}
         values.update(changes)
         return Command(**values)
+
+
+MIN_STIFFNESS = 0.05  # `Command.stiffness`: the softest a joint may be asked to go (5 % of its P gain)
 
 
 class Lifecycle(enum.Enum):

@@ -2,12 +2,14 @@
 
 Per tick, on the controller's command (`SafetyLayer.filter`):
 
-1. Non-finite targets (NaN, ±inf) anywhere in ``q`` or ``dq_max``: the whole command is replaced by
-   the last good one (held), and ``nonfinite_held`` counts it.
+1. Non-finite targets (NaN, ±inf) anywhere in ``q``, ``dq_max`` or ``stiffness`` (or a stiffness of the wrong
+   shape): the whole command is replaced by the last good one (held), and ``nonfinite_held`` counts it.
 2. Soft limits: ``q`` is clamped to ``[lower + margin, upper - margin]`` of the description.
 3. Maximum step: ``|q - q_last_sent| <= max_step`` with ``max_step = fraction · v_max · dt`` per joint
    (v_max from the description, by default the servo's no-load speed), so no target can jump; at
    start-up ``q_last_sent`` is the present position, which is what makes arming jump-free.
+4. Stiffness (`felis.hal.Command.stiffness`) is clamped to ``[MIN_STIFFNESS, 1]``: a controller may soften a
+   joint, never stiffen it past its description nor make it limp.
 
 `Watchdog` counts consecutive failed reads and consecutive loop overruns; past their tolerance it
 trips, and the loop disarms the robot (torque off) and stops.
@@ -20,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from felis.hal import Command
+from felis.hal import MIN_STIFFNESS, Command
 from felis.spec import RobotSpec
 
 _sum = np.add.reduce
@@ -88,9 +90,13 @@ class SafetyLayer:
         dq_max = command.dq_max
         if dq_max is not None:
             dq_max = np.asarray(dq_max, dtype=float)
+        stiffness = command.stiffness
+        if stiffness is not None:
+            stiffness = np.asarray(stiffness, dtype=float)
         # a sum is finite iff every term is (ufunc reduce: no Python-level wrapper on the hot path)
         if (q.shape != last.q.shape or not math.isfinite(_sum(q))
-                or (dq_max is not None and not math.isfinite(_sum(dq_max)))):
+                or (dq_max is not None and not math.isfinite(_sum(dq_max)))
+                or (stiffness is not None and (stiffness.shape != q.shape or not math.isfinite(_sum(stiffness))))):
             self.counters.nonfinite_held += 1
             bad = np.flatnonzero(~np.isfinite(q)).tolist() if q.shape == last.q.shape else []
             self.events.append(("nonfinite_held", {"joints": bad, "shape": list(q.shape)}))
@@ -107,7 +113,9 @@ class SafetyLayer:
             in_range = np.minimum(np.maximum(q, self.lower), self.upper)
             if _any(out != in_range):
                 self.counters.step_clamps += 1
-        return Command(q=out, dq_max=dq_max, torque=command.torque)
+        if stiffness is not None:  # compliance only: never stiffer than described, never limp
+            stiffness = np.minimum(np.maximum(stiffness, MIN_STIFFNESS), 1.0)
+        return Command(q=out, dq_max=dq_max, torque=command.torque, stiffness=stiffness)
 
     def filter_many(self, q: np.ndarray, last: np.ndarray) -> np.ndarray:
         """`filter` for a batch of robots at once (`felis.sim.batch`): ``q`` and ``last`` (the targets each

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from importlib import resources
 from pathlib import Path
 
@@ -170,6 +171,7 @@ class MujocoRobot(RobotBase):
         self._goal = np.zeros(spec.n)
         self._dq_max: np.ndarray | None = None
         self._torque = np.zeros(spec.n, dtype=bool)
+        self._stiffness: np.ndarray | None = None  # `Command.stiffness` in force (None: every joint as described)
 
     # ------------------------------------------------------------------ connect / model checks
     def _connect(self) -> None:
@@ -257,8 +259,25 @@ class MujocoRobot(RobotBase):
             raise ModelMismatch(f"joint {self.spec.names[joint]!r}: the model was built without the actuators for "
                                 f"I, D or feedforward gains (MujocoRobot(..., full_controller=True))")
         self._ctl[joint] = ctl
-        configure_joint(self.model, acts, ctl, bool(self._torque[joint]))
+        configure_joint(self.model, acts, self._joint_ctl(joint), bool(self._torque[joint]))
         self._set_fgain()
+
+    def _joint_ctl(self, joint: int) -> Controller:
+        """Joint ``joint``'s controller with its `felis.hal.Command.stiffness` (P gain scaled) applied."""
+        ctl = self._ctl[joint]
+        s = 1.0 if self._stiffness is None else float(self._stiffness[joint])
+        return ctl if s == 1.0 else replace(ctl, kp=ctl.kp * s)
+
+    def _set_stiffness(self, stiffness: np.ndarray | None) -> None:
+        """`felis.hal.Command.stiffness` (None: as described) into the joints whose value changed."""
+        ones = np.ones(self.spec.n)
+        new = ones if stiffness is None else np.asarray(stiffness, dtype=float)
+        if new.shape != (self.spec.n,):
+            raise ValueError(f"stiffness has {new.size} entries, robot has {self.spec.n} joints")
+        changed = np.flatnonzero(new != (ones if self._stiffness is None else self._stiffness))
+        self._stiffness = None if stiffness is None else new.copy()
+        for i in changed:
+            configure_joint(self.model, self._acts[i], self._joint_ctl(int(i)), bool(self._torque[i]))
 
     def _reset_data(self) -> None:
         m, d = self.model, self.data
@@ -344,8 +363,8 @@ class MujocoRobot(RobotBase):
         new = np.array(mask, dtype=bool)
         was = getattr(self, "_torque", np.zeros_like(new))
         self._torque = new
-        for i, (acts, ctl) in enumerate(zip(self._acts, self._ctl, strict=True)):
-            configure_joint(self.model, acts, ctl, bool(new[i]))
+        for i, acts in enumerate(self._acts):
+            configure_joint(self.model, acts, self._joint_ctl(i), bool(new[i]))
         if self._iact.size and self.data is not None:
             turned_on = (new & ~was)[self._ipos] | ~new[self._ipos]
             self.data.act[self._iact[turned_on]] = 0.0
@@ -410,6 +429,8 @@ class MujocoRobot(RobotBase):
                 self._set_torque(torque)
         elif not self._torque.all():
             self._set_torque(np.ones(self.spec.n, dtype=bool))
+        if command.stiffness is not None or self._stiffness is not None:
+            self._set_stiffness(command.stiffness)
         self._goal = q
         self._dq_max = None if command.dq_max is None else np.abs(np.asarray(command.dq_max, dtype=float))
         if self._dq_max is None:
@@ -428,7 +449,7 @@ class MujocoRobot(RobotBase):
                 profiles.append(Profile.move(t, p0, v0, float(q[i]), vmax if math.isfinite(vmax) and vmax > 0
                                              else math.inf, math.inf))
             self._profiles = profiles
-        return Command(q=q, dq_max=command.dq_max, torque=torque)
+        return Command(q=q, dq_max=command.dq_max, torque=torque, stiffness=command.stiffness)
 
     def _advance(self, dt: float) -> None:
         m, d = self.model, self.data
@@ -472,6 +493,8 @@ class MujocoRobot(RobotBase):
         Keeps the lifecycle state, so episodes can reuse one compiled model.
         """
         self._require(Lifecycle.CONNECTED, Lifecycle.ARMED, action="reset")
+        if self._stiffness is not None:  # every joint as described again
+            self._set_stiffness(None)
         self._reset_data()
 
     def body_id(self, name: str) -> int:

@@ -69,6 +69,7 @@ _HW_ERROR = address("hardware_error_status")
 _BUS_WATCHDOG = address("bus_watchdog")
 _HOMING_OFFSET = address("homing_offset")
 _OPERATING_MODE = address("operating_mode")
+_P_GAIN = address("position_p_gain")  # the same address on every X-series model (84)
 _GAIN_ITEMS = ("position_p_gain", "position_i_gain", "position_d_gain", "feedforward_1st_gain", "feedforward_2nd_gain")
 _BLOCK_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 # what one tick reads per servo, gathered by Indirect Addressing: addresses in order, then the layout
@@ -156,6 +157,10 @@ class DynamixelRobot(RobotBase):
         self._torque = np.zeros(n, dtype=bool)
         self._t0 = time.monotonic()
         self._profile_set = False  # a nonzero Profile Velocity was written: the next write must reset it
+        self._p_described = np.array([int(j.pid[0]) if j.pid[0] is not None
+                                      else control_table(j.servo).item("position_p_gain").default
+                                      for j in spec.joints], dtype=np.int64)  # Position P Gain as described
+        self._p_sent = self._p_described.copy()  # what the servos hold (`Command.stiffness` scales it)
         if bus_watchdog_s is not None and not 0.02 <= bus_watchdog_s <= 127 * 0.02:
             raise ValueError(f"bus_watchdog_s must be within 0.02…2.54 s (or None), got {bus_watchdog_s}")
         self.bus_watchdog_s = bus_watchdog_s
@@ -204,6 +209,7 @@ class DynamixelRobot(RobotBase):
             raise CommError(f"servos in the wrong operating mode: {'; '.join(wrong_mode)}; fix: `felis check-eeprom "
                             "--robot NAME` (writes it), or `felis torque off` then `felis write ID operating_mode N`")
         self._write_controller()
+        self._p_sent = self._p_described.copy()
         if self.calibration.homing is not None:
             res = bus.sync_read(self.ids, _HOMING_OFFSET, 4, fast=False, retries=2)
             held = {i: int.from_bytes(b, "little", signed=True) for i, b in res.data.items() if b is not None}
@@ -503,7 +509,24 @@ class DynamixelRobot(RobotBase):
             raw = buf.tobytes()
             self.bus.sync_write(*_GOAL_BLOCK, {i: raw[8 * k: 8 * k + 8] for k, i in enumerate(self.ids)})
             self._profile_set = bool(prof.any())
-        return Command(q=self.ticks_to_q(ticks), dq_max=command.dq_max, torque=torque)
+        stiffness = self._write_stiffness(command.stiffness)
+        return Command(q=self.ticks_to_q(ticks), dq_max=command.dq_max, torque=torque, stiffness=stiffness)
+
+    def _write_stiffness(self, stiffness) -> np.ndarray | None:
+        """`felis.hal.Command.stiffness` as Position P Gain = round(P·s) (RAM), one sync write of the joints whose
+        gain changes (none on most ticks); None puts the described gains back."""
+        if stiffness is None:
+            p = self._p_described
+        else:
+            s = np.asarray(stiffness, dtype=float)
+            if s.shape != (self.spec.n,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+                raise ValueError(f"stiffness must be {self.spec.n} finite fractions > 0")
+            p = np.maximum(1, np.rint(self._p_described * np.minimum(s, 1.0))).astype(np.int64)
+        changed = np.flatnonzero(p != self._p_sent)
+        if changed.size:
+            self.bus.sync_write(_P_GAIN, 2, {self.ids[k]: int(p[k]).to_bytes(2, "little") for k in changed})
+            self._p_sent = p.copy()
+        return None if stiffness is None else p / self._p_described
 
     def _advance(self, dt: float) -> None:
         """Hardware moves on its own; the loop's wall clock paces the ticks."""

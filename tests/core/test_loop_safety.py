@@ -77,6 +77,22 @@ def test_nonfinite_holds_last_good_and_counts():
     assert layer.events[0][0] == "nonfinite_held"
 
 
+def test_stiffness_is_clamped_to_compliance_and_a_bad_one_is_held():
+    """`Command.stiffness`: within [MIN_STIFFNESS, 1] (soften, never stiffen past the description, never limp);
+    non-finite or of the wrong shape holds the last good command, like a bad target."""
+    from felis.hal import MIN_STIFFNESS
+
+    layer = SafetyLayer(CAT, dt=0.01)
+    layer.reset(np.zeros(12))
+    out = layer.filter(Command(q=np.zeros(12), stiffness=np.r_[0.0, 2.0, 0.5, np.ones(9)]))
+    assert out.stiffness[:3] == pytest.approx([MIN_STIFFNESS, 1.0, 0.5])
+    layer.sent(out)
+    for bad in (np.full(12, np.nan), np.ones(5)):
+        assert layer.filter(Command(q=np.zeros(12), stiffness=bad)) is out
+    assert layer.counters.nonfinite_held == 2
+    assert layer.filter(Command(q=np.zeros(12))).stiffness is None  # None: every joint as described
+
+
 def test_reset_clamps_present_into_soft_range():
     layer = SafetyLayer(CAT, dt=0.01, config=SafetyConfig(soft_margin=0.2))
     layer.reset(CAT.upper)

@@ -470,3 +470,26 @@ def test_a_late_reply_is_not_taken_for_the_next_answer():
                 bus.ping(15)
             bus._margin_ms = 30
             assert bus.read(15, "operating_mode", raw=True) == 5
+
+
+def test_stiffness_is_written_as_position_p_gain_only_when_it_changes():
+    """`Command.stiffness` on servos: Position P Gain = round(P·s) in one sync write when it changes, nothing on
+    the ticks it does not, the described gain back with None (the arm's P 800)."""
+    spec = load_spec("arm")
+    with VirtualBus.for_robot(spec, baud=BAUD) as vb, DynamixelRobot(spec, vb.port, BAUD) as robot:
+        robot.arm()
+        q = robot.read().q
+        p = [vb.servo(j.servo_id).get("position_p_gain") for j in spec.joints]
+        assert p[:4] == [800] * 4
+        soft = np.array([0.25, 1.0, 0.5, 1.0, 1.0])
+        sent = robot.write(Command(q=q, stiffness=soft))
+        assert sent.stiffness == pytest.approx(soft)
+        robot.read()  # a round trip: the bus has handled every packet before it
+        assert [vb.servo(j.servo_id).get("position_p_gain") for j in spec.joints] == [200, 800, 400, 800, p[4]]
+        writes = vb.stats.instructions["sync_write"]
+        robot.write(Command(q=q, stiffness=soft))
+        robot.read()
+        assert vb.stats.instructions["sync_write"] == writes + 1  # the goals only
+        robot.write(Command(q=q))
+        robot.read()
+        assert [vb.servo(j.servo_id).get("position_p_gain") for j in spec.joints] == p

@@ -164,6 +164,34 @@ def test_servo_step_response_reaches_target_and_saturates(cat):
     assert np.allclose(np.array(q) / RAD_PER_TICK, np.round(np.array(q) / RAD_PER_TICK))
 
 
+def test_stiffness_scales_the_position_gain_and_the_legs_give(cat):
+    """`Command.stiffness` in MuJoCo: the position actuators' kp times s (I, D, feedforward kept); the standing
+    cat's loaded leg pitch joints sink about 1/s as far from their goal at s = 0.2 as at 1, and come back."""
+    set_pose(cat, CAT.pose("stand"))
+    cat.arm()
+    legs = np.array([CAT.index(n) for n in ("fl_pitch", "fr_pitch", "hl_pitch", "hr_pitch")])
+    stand = CAT.pose("stand")
+    kp = cat.model.actuator_gainprm[cat._act, 0].copy()
+
+    def sag(stiffness) -> float:
+        for _ in range(150):
+            cat.write(Command(q=stand, stiffness=stiffness))
+            cat.advance(0.01)
+        return float(np.abs(cat.read().q[legs] - stand[legs]).max())
+
+    stiff = sag(None)
+    soft = np.full(12, 0.2)
+    sent = cat.write(Command(q=stand, stiffness=soft))
+    assert sent.stiffness is not None
+    assert cat.model.actuator_gainprm[cat._act, 0] == pytest.approx(kp * soft)
+    assert cat.model.actuator_biasprm[cat._act, 1] == pytest.approx(-kp * soft)
+    softer = sag(soft)
+    again = sag(None)
+    assert cat.model.actuator_gainprm[cat._act, 0] == pytest.approx(kp)
+    print(f"\nleg pitch sag under the cat's weight: {stiff:.4f} rad stiff, {softer:.4f} at s = 0.2, {again:.4f} back")
+    assert softer > 2 * stiff + RAD_PER_TICK and again < softer / 2
+
+
 def test_torque_off_goes_limp(cat):
     set_pose(cat, CAT.pose("stand"))
     cat.arm()
