@@ -6,6 +6,10 @@ velocities v (rad/s). They are integrated into position targets, q* ← clip(q* 
 Δt the time since the last tick; below `LANDING_HEIGHT_M` the spine targets are held straight (the
 paper's landing rule). A non-finite velocity holds the last targets.
 
+Touchdown compliance (issue 21, item 5): with ``touchdown_stiffness`` s < 1, below the same height the legs'
+Position P gain drops to s of the described (`felis.hal.Command.stiffness`; I, D and feedforward kept), so the
+legs give at impact instead of folding a rigid link onto the floor; s = 1 (the default) changes nothing.
+
 A policy is anything with ``velocities(it) -> (12,)`` (`SimpleBehaviour`, `ComplexBehaviour`) or a
 callable ``(it, t) -> (12,)`` with t the time since the controller's reset (a hand-written rule).
 
@@ -20,12 +24,13 @@ height measured. `PerCat` runs any HAL controller once per cat (the baselines ``
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.hal import Command, Imu, State
+from felis.hal import MIN_STIFFNESS, Command, Imu, State
 from felis.learning.landing.policy import (
     JOINTS,
     LANDING_HEIGHT_M,
@@ -48,9 +53,10 @@ class LandingController:
     name = "landing"
     needs_imu = True  # the nets' inputs are the body's orientation: no IMU, no landing (the loop stops)
 
-    def __init__(self, policy, drop_height: float | None = None):
+    def __init__(self, policy, drop_height: float | None = None, touchdown_stiffness: float = 1.0):
         if drop_height is not None and not (np.isfinite(drop_height) and drop_height > 0):
             raise ParameterError(f"landing: drop height must be a positive number of metres, got {drop_height}")
+        self.touchdown_stiffness = check_stiffness(touchdown_stiffness)
         if callable(getattr(policy, "velocities", None)):
             self._policy: Callable = lambda it, t: policy.velocities(it)
         elif callable(policy):
@@ -69,6 +75,7 @@ class LandingController:
         self._q = np.clip(np.asarray(state.q, dtype=float), spec.lower, spec.upper)
         self._t0 = self._t = float(state.t)
         self._spine = np.array([spec.index("spine_pitch"), spec.index("spine_yaw")])
+        self._soft = leg_stiffness(spec, self.touchdown_stiffness)
 
     def height(self, state: State) -> float:
         """Waist height (m): measured, else the free-fall prediction from the drop height."""
@@ -93,10 +100,29 @@ class LandingController:
             self.held += 1
         if h < LANDING_HEIGHT_M:
             self._q[self._spine] = landing_rule(h, self._q[self._spine])
+            if self._soft is not None:
+                return Command(q=self._q.copy(), stiffness=self._soft)
         return Command(q=self._q.copy())
 
     def summary(self) -> dict:
         return {"held_ticks": self.held}
+
+
+def check_stiffness(s: float) -> float:
+    """A touchdown stiffness (fraction of the legs' P gain): within [MIN_STIFFNESS, 1], else one line."""
+    if not (isinstance(s, int | float) and math.isfinite(s) and MIN_STIFFNESS <= s <= 1.0):
+        raise ParameterError(f"landing: touchdown stiffness must be within {MIN_STIFFNESS:g}…1 (a fraction of the "
+                             f"legs' P gain), got {s!r}")
+    return float(s)
+
+
+def leg_stiffness(spec: RobotSpec, s: float) -> np.ndarray | None:
+    """Per-joint stiffness with the legs at ``s`` and the rest at 1; None when s = 1 (nothing to change)."""
+    if s >= 1.0:
+        return None
+    out = np.ones(spec.n)
+    out[spec.indices("legs")] = s
+    return out
 
 
 class LandingBatch:
@@ -107,10 +133,12 @@ class LandingBatch:
     open-loop motion per cat). The rows of each policy are evaluated together.
     """
 
-    def __init__(self, spec: RobotSpec, policies, index=None):
+    def __init__(self, spec: RobotSpec, policies, index=None, touchdown_stiffness: float = 1.0):
         if tuple(spec.names) != JOINTS:
             raise ParameterError(f"landing: the policy drives the cat's joints, not {spec.name}'s")
         self.spec = spec
+        self._soft = leg_stiffness(spec, check_stiffness(touchdown_stiffness))
+        self.stiffness: np.ndarray | None = None  # (B, n) after each tick when a row is compliant (DropBatch reads)
         self.policies = list(policies)
         self.index = None if index is None else np.asarray(index, dtype=int)
         self._spine = np.array([spec.index("spine_pitch"), spec.index("spine_yaw")])
@@ -150,6 +178,10 @@ class LandingBatch:
         low = np.flatnonzero(np.asarray(h) < LANDING_HEIGHT_M)
         if low.size:
             self._q[np.ix_(low, self._spine)] = 0.0
+        self.stiffness = None
+        if low.size and self._soft is not None:
+            self.stiffness = np.ones_like(self._q)
+            self.stiffness[low] = self._soft
         return self._q.copy()
 
 
@@ -159,6 +191,7 @@ class PerCat:
 
     def __init__(self, spec: RobotSpec, make: Callable[[int], object]):
         self.spec, self.make = spec, make
+        self.stiffness: np.ndarray | None = None  # (B, n) when a cat's command softens joints (DropBatch reads)
 
     def _state(self, t, q, quat, h) -> State:
         z = np.zeros(3)
@@ -172,5 +205,8 @@ class PerCat:
             c.reset(self.spec, self._state(t[i], q[i], quat, np.inf))
 
     def __call__(self, t: np.ndarray, q: np.ndarray, quat: np.ndarray, h: np.ndarray) -> np.ndarray:
-        return np.array([np.asarray(c(self._state(t[i], q[i], quat[i], h[i])).q, dtype=float)
-                         for i, c in enumerate(self._cats)])
+        cmds = [c(self._state(t[i], q[i], quat[i], h[i])) for i, c in enumerate(self._cats)]
+        soft = [c.stiffness for c in cmds]
+        self.stiffness = None if all(x is None for x in soft) else np.array(
+            [np.ones(len(q[i])) if x is None else np.asarray(x, dtype=float) for i, x in enumerate(soft)])
+        return np.array([np.asarray(c.q, dtype=float) for c in cmds])

@@ -32,6 +32,7 @@ Threads: ``nthread`` (default: every core); results do not depend on it (each ca
 
 from __future__ import annotations
 
+import copy
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ import mujoco.rollout
 import numpy as np
 
 from felis.errors import ParameterError
+from felis.hal import MIN_STIFFNESS
 from felis.safety import SafetyConfig, SafetyLayer
 from felis.scenarios.drop import Drop
 from felis.scenarios.verdicts import WINDOW_S, LandingTruth
@@ -125,6 +127,7 @@ class DropBatch:
         self._pool = mujoco.rollout.Rollout(nthread=self.nthread)
         self._datas = [mujoco.MjData(m) for _ in range(self.nthread)]
         self._models: list[mujoco.MjModel] = []  # the model once per cat of a tick (rollout's unchecked call)
+        self._stiff: dict[bytes, mujoco.MjModel] = {}  # compliant copies of the model (`_stiff_model`)
         self.nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         r = self.robot
         self._qadr = 1 + np.asarray(r._qadr)  # FULLPHYSICS: time, qpos, qvel, …
@@ -155,6 +158,22 @@ class DropBatch:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def _stiff_model(self, stiffness: np.ndarray) -> mujoco.MjModel:
+        """The model with its position actuators' kp scaled by ``stiffness`` (per joint, clamped as the safety
+        layer does), as `MujocoRobot` applies `felis.hal.Command.stiffness`; one copy per distinct value."""
+        s = np.minimum(np.maximum(np.asarray(stiffness, dtype=float), MIN_STIFFNESS), 1.0)
+        if np.all(s == 1.0):
+            return self.model
+        key = s.tobytes()
+        m = self._stiff.get(key)
+        if m is None:
+            m = self._stiff[key] = copy.deepcopy(self.model)
+            for i in np.flatnonzero(s != 1.0):
+                a = self._act[i]
+                m.actuator_gainprm[a, 0] *= s[i]
+                m.actuator_biasprm[a, 1] *= s[i]
+        return m
 
     # ------------------------------------------------------------------ start states
     def initial(self, drops: Sequence[Drop]) -> tuple[np.ndarray, np.ndarray]:
@@ -225,9 +244,15 @@ class DropBatch:
             c[:, :, self._act] = sent[a][:, None, :]
             st, sd = out_state[:na], out_sens[:na]
             self.last_ctrl = c
-            if len(self._models) != na:
-                self._models = [m] * na
-            self._pool.rollout(self._models, self._datas, np.ascontiguousarray(state[a]), c, nstep=PHYSICS_PER_TICK,
+            stiffness = getattr(controller, "stiffness", None)  # `Command.stiffness` per cat, when any is soft
+            if stiffness is not None:
+                models = [self._stiff_model(stiffness[i]) for i in a]
+                self._models = []
+            else:
+                if len(self._models) != na:
+                    self._models = [m] * na
+                models = self._models
+            self._pool.rollout(models, self._datas, np.ascontiguousarray(state[a]), c, nstep=PHYSICS_PER_TICK,
                                state=st, sensordata=sd, skip_checks=True,
                                chunk_size=max(1, na // (self.nthread * 4)))
             # divergence: MuJoCo resets a cat whose state went non-finite (its time goes back)

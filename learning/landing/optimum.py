@@ -231,8 +231,11 @@ class DropOptimum:
                 "motion_x": [round(v, 4) for v in self.x]}
 
 
-def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray) -> list[tuple[float, object]]:
-    """Score motions ``xs`` (B, 55) on ``drops`` (B) in one batch of ``sim`` (`BatchLandingSim`)."""
+def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: float = 1.0,
+             outcomes: list | None = None) -> list[tuple[float, object]]:
+    """Score motions ``xs`` (B, 55) on ``drops`` (B) in one batch of ``sim`` (`BatchLandingSim`), with the legs'
+    touchdown compliance (`felis.controllers.landing.LandingController`); ``outcomes``: a list that gets each
+    drop's `felis.learning.landing.evaluate.LandingOutcome` too."""
     from felis.controllers.landing import LandingBatch
     from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
     from felis.learning.landing.policy import MAX_SPEED
@@ -240,8 +243,12 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray) -> list[tuple[float, ob
     n_ticks = [int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops]
     T = max(n_ticks)
     tables = np.stack([motion_table(x, d.height_m, MAX_SPEED, T) for x, d in zip(xs, drops, strict=True)])
-    ctl = LandingBatch(sim.spec, [OpenLoop(tables)])
+    ctl = LandingBatch(sim.spec, [OpenLoop(tables)], touchdown_stiffness=touchdown_stiffness)
     results = sim.batch.run(list(drops), ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
+    if outcomes is not None:
+        from felis.learning.landing.evaluate import outcome_of
+
+        outcomes += [outcome_of(d, "optimum", r, sim.standing_waist_m) for d, r in zip(drops, results, strict=True)]
     return [score(r, sim.standing_waist_m) for r in results]
 
 

@@ -14,6 +14,7 @@ from felis.learning.landing.evaluate import (
     batch_controller,
     run_drops,
     run_drops_sequential,
+    shipped_policy,
 )
 from felis.scenarios.drop import Drop, random_drops
 
@@ -87,3 +88,28 @@ def test_a_stacked_population_gives_each_row_its_own_behaviour():
     got = StackedSimple(pop, index).velocities_many(it)
     want = np.stack([pop[i].velocities(it[b]) for b, i in enumerate(index)])
     assert np.allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_touchdown_compliance_batched_equals_sequential():
+    """Touchdown compliance (`LandingController(touchdown_stiffness=…)`, `LandingBatch`'s, the batch's compliant
+    model copies) judged the same in a batch as through `run_loop` and `MujocoRobot`, within the stated tolerance;
+    the softened legs change the landing (the peak impact)."""
+    from felis.controllers.landing import LandingBatch, LandingController
+    from felis.learning.landing.policy import load_policy
+
+    behaviour, _ = load_policy(shipped_policy())
+    drops = [Drop(0.0, 0.0, 0.0, 3.0), Drop(20.0, -30.0, 10.0, 3.0), Drop(-40.0, 10.0, 0.0, 1.0)]
+    seq_sim, bat_sim = LandingSim(), BatchLandingSim(nthread=2)
+    try:
+        seq = [seq_sim.run(d, LandingController(behaviour, touchdown_stiffness=0.3)) for d in drops]
+        bat = bat_sim.run(drops, LandingBatch(bat_sim.spec, [behaviour], touchdown_stiffness=0.3))
+        stiff = bat_sim.run(drops, LandingBatch(bat_sim.spec, [behaviour]))
+    finally:
+        seq_sim.close()
+        bat_sim.close()
+    for a, b in zip(seq, bat, strict=True):
+        assert a.landed == b.landed and a.why == b.why
+        assert a.touchdown_s == pytest.approx(b.touchdown_s, abs=1e-12)
+        assert a.tilt_deg == pytest.approx(b.tilt_deg, abs=1e-3)
+        assert a.peak_impact == pytest.approx(b.peak_impact, rel=1e-3)
+    assert any(abs(s.peak_impact - b.peak_impact) > 0.01 * s.peak_impact for s, b in zip(stiff, bat, strict=True))
