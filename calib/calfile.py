@@ -291,24 +291,30 @@ def now_iso() -> str:
 def load(path: str | Path, spec: RobotSpec | None = None, *, complete: bool = True) -> CalibrationFile:
     """Read and check a calibration file; every problem is one `CalibrationError` line."""
     path = Path(path)
-    text = read_text(path, "calibration file", CalibrationError, hint=lambda: _backup_hint(path),
-                     missing="no calibration file at {path}", directory=None,
-                     undecodable="{path}: not a text file (corrupt){hint}", unreadable="cannot read {path}: {reason}")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        what = "empty" if not text.strip() else f"not valid JSON at line {e.lineno} column {e.colno}"
-        raise CalibrationError(f"{path}: {what} (corrupt or cut short){_backup_hint(path)}") from None
+    data = read_json(path, "calibration file")
     try:
         cal = CalibrationFile.from_dict(data, str(path))
         if spec is not None:
             cal.check(spec, str(path), complete=complete)
     except CalibrationError as e:
-        raise CalibrationError(f"{e}{_backup_hint(path)}") from None
+        raise CalibrationError(f"{e}{backup_hint(path)}") from None
     return cal
 
 
-def _backup_hint(path: Path) -> str:
+def read_json(path: Path, what: str):
+    """The JSON of a file kept with a backup (a calibration, a pose file); every problem one `CalibrationError`
+    line naming the backup where there is one."""
+    text = read_text(path, what, CalibrationError, hint=lambda: backup_hint(path),
+                     missing=f"no {what} at {{path}}", directory=None,
+                     undecodable="{path}: not a text file (corrupt){hint}", unreadable="cannot read {path}: {reason}")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        bad = "empty" if not text.strip() else f"not valid JSON at line {e.lineno} column {e.colno}"
+        raise CalibrationError(f"{path}: {bad} (corrupt or cut short){backup_hint(path)}") from None
+
+
+def backup_hint(path: Path) -> str:
     bak = backup_path(path)
     return f"; the previous version is {bak}" if bak.is_file() and bak != path else ""
 
@@ -332,6 +338,6 @@ def stale_temps(folder: Path) -> list[Path]:
     return sorted(folder.glob(".*.json.*.tmp")) if folder.is_dir() else []
 
 
-__all__ = ["SCHEMA", "CalibrationFile", "JointCalibration", "backup_path", "calibration_path", "check_offset",
-           "check_range", "check_robot_id", "config_dir", "copy_out", "description_ticks", "load", "q_of_tick",
-           "save", "tick_of_q", "zero_tick"]
+__all__ = ["SCHEMA", "CalibrationFile", "JointCalibration", "backup_hint", "backup_path", "calibration_path",
+           "check_offset", "check_range", "check_robot_id", "config_dir", "copy_out", "description_ticks", "load",
+           "q_of_tick", "read_json", "save", "tick_of_q", "zero_tick"]

@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from felis.calib.calfile import backup_path, check_robot_id, config_dir, now_iso
+from felis.calib.calfile import backup_hint, backup_path, check_robot_id, config_dir, now_iso, read_json
 from felis.errors import CalibrationError, ParameterError
-from felis.files import read_text, write_atomic
+from felis.files import write_atomic
 from felis.servos import RAD_PER_TICK
 from felis.spec import RobotSpec
 
@@ -168,26 +168,14 @@ def load(path: str | Path, spec: RobotSpec | None = None, *, robot_id: str | Non
     path = Path(path)
     if missing_ok and not path.exists():
         return None
-    text = read_text(path, "pose file", CalibrationError, hint=lambda: _backup_hint(path),
-                     missing="no pose file at {path}", directory=None,
-                     undecodable="{path}: not a text file (corrupt){hint}", unreadable="cannot read {path}: {reason}")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        what = "empty" if not text.strip() else f"not valid JSON at line {e.lineno} column {e.colno}"
-        raise CalibrationError(f"{path}: {what} (corrupt or cut short){_backup_hint(path)}") from None
+    data = read_json(path, "pose file")
     try:
         pf = PoseFile.from_dict(data, str(path))
         if spec is not None:
             pf.check(spec, str(path), robot_id)
     except CalibrationError as e:
-        raise CalibrationError(f"{e}{_backup_hint(path)}") from None
+        raise CalibrationError(f"{e}{backup_hint(path)}") from None
     return pf
-
-
-def _backup_hint(path: Path) -> str:
-    bak = backup_path(path)
-    return f"; the previous version is {bak}" if bak.is_file() and bak != path else ""
 
 
 def save(pf: PoseFile, path: str | Path) -> Path:

@@ -105,6 +105,19 @@ def trace_option(sp) -> None:
                     help="write every instruction and status packet (time, decoded, hex) to FILE")
 
 
+def backend_args(sp, imu_help: str = "dxl: serial device of the cat's IMU (BNO08x UART-RVC)") -> None:
+    """A run's robot: ``--backend sim|dxl`` and, for servos, ``--port``, ``--baud``, ``--imu-port``, ``--robot-id``,
+    ``--calibration``, ``--yes`` (`felis.cli.episode.Episode` takes them)."""
+    sp.add_argument("--backend", default="sim", choices=["sim", "dxl", "dynamixel"],
+                    help="sim: MuJoCo; dxl: Dynamixel servos on --port (default sim)")
+    sp.add_argument("--port", help="dxl: serial device, or 'virtual' (virtual bus backed by MuJoCo)")
+    sp.add_argument("--baud", type=baud_rate, default=1_000_000, help="dxl: baud rate (default 1000000)")
+    sp.add_argument("--imu-port", help=imu_help)
+    sp.add_argument("--robot-id", help="dxl: use this robot's calibration (`felis calibrate --id`)")
+    sp.add_argument("--calibration", type=Path, metavar="FILE", help="dxl: a calibration file instead of --robot-id")
+    sp.add_argument("--yes", action="store_true", help="dxl: apply EEPROM setting differences without asking")
+
+
 def live_option(sp, what: str = "serve the run live to Foxglove over WebSocket") -> None:
     """``--live [HOST:]PORT``: serve the run's log channels over the Foxglove WebSocket protocol
     (`felis.logs.live`); 127.0.0.1 unless a host is given; nothing listens without it."""

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.cli import output
-from felis.cli.args import baud_rate, finite
+from felis.cli.args import backend_args, finite
 from felis.cli.episode import Episode, EpisodeResult, _Dxl, _Sim
 from felis.cli.results import exit_code, print_result
 from felis.controllers.replay import Commands, ReplayController, approach_time
@@ -44,14 +44,7 @@ def register(sub) -> None:
     p = sub.add_parser("replay", help="replay a run log's commands on a robot and compare with the original")
     p.add_argument("file", type=Path, metavar="LOG", help="a run log (.mcap) from `felis run --log` and the like")
     p.add_argument("--robot", help="robot name or description .toml (default: the log's robot; must match it)")
-    p.add_argument("--backend", default="sim", choices=["sim", "dxl", "dynamixel"],
-                   help="sim: MuJoCo; dxl: Dynamixel servos on --port (default sim)")
-    p.add_argument("--port", help="dxl: serial device, or 'virtual' (virtual bus backed by MuJoCo)")
-    p.add_argument("--baud", type=baud_rate, default=1_000_000, help="dxl: baud rate (default 1000000)")
-    p.add_argument("--imu-port", help="dxl: serial device of the cat's IMU (logged; the replay does not steer by it)")
-    p.add_argument("--robot-id", help="dxl: use this robot's calibration (`felis calibrate --id`)")
-    p.add_argument("--calibration", type=Path, metavar="FILE", help="dxl: a calibration file instead of --robot-id")
-    p.add_argument("--yes", action="store_true", help="dxl: apply EEPROM setting differences without asking")
+    backend_args(p, imu_help="dxl: serial device of the cat's IMU (logged; the replay does not steer by it)")
     p.add_argument("--servo-params", type=Path, metavar="FILE",
                    help="simulated servos' parameters from `felis sysid` (sim backend or --port virtual)")
     p.add_argument("--speed", type=finite, default=1.0,

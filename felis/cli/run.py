@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from felis.cli.args import finite, live_option, trace_option
+from felis.cli.args import backend_args, finite, live_option, trace_option
 from felis.cli.results import episode, report
 from felis.controllers.arm_track import run_time, trajectory_from
 from felis.errors import ParameterError
@@ -21,14 +21,7 @@ def register(sub) -> None:
     run.add_argument("controller", help="controller name: hold, stand, sit, zero, arm-track, step-in-place, balance, "
                      "landing")
     run.add_argument("--robot", required=True, help="robot name (cat, arm) or a description .toml")
-    run.add_argument("--backend", default="sim", choices=["sim", "dxl", "dynamixel"],
-                     help="sim: MuJoCo; dxl: Dynamixel servos on --port (default sim)")
-    run.add_argument("--port", help="dxl: serial device, or 'virtual' (virtual bus backed by MuJoCo)")
-    run.add_argument("--baud", type=int, default=1_000_000, help="dxl: baud rate (default 1000000)")
-    run.add_argument("--imu-port", help="dxl: serial device of the cat's IMU (BNO08x UART-RVC)")
-    run.add_argument("--robot-id", help="dxl: use this robot's calibration (`felis calibrate --id`)")
-    run.add_argument("--calibration", type=Path, metavar="FILE", help="dxl: a calibration file instead of --robot-id")
-    run.add_argument("--yes", action="store_true", help="dxl: apply EEPROM setting differences without asking")
+    backend_args(run)
     run.add_argument("--duration", type=finite, help="seconds (default 3; arm-track: the trajectory's length; "
                      "landing with --height: the fall √(2h/g) + 2 s)")
     run.add_argument("--height", type=finite, help="drop the robot: its lowest point this high above the floor (m); "
