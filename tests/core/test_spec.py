@@ -46,7 +46,7 @@ def test_arm_description_matches_robots_md():
 
 def test_available_and_unknown_robot():
     assert {"cat", "arm"} <= set(available_robots())
-    with pytest.raises(UnknownRobotError, match="unknown robot 'dog'.*arm, cat"):
+    with pytest.raises(UnknownRobotError, match="unknown robot 'dog'.*arm, arm-leader, cat"):
         load_spec("dog")
 
 
