@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.cli import output
-from felis.cli.args import backend_args, finite
+from felis.cli.args import backend_args, finite, trace_option
 from felis.cli.episode import Episode, EpisodeResult, _Dxl, _Sim
 from felis.cli.results import exit_code, print_result
 from felis.controllers.replay import Commands, ReplayController, approach_time
@@ -45,6 +45,7 @@ def register(sub) -> None:
     p.add_argument("file", type=Path, metavar="LOG", help="a run log (.mcap) from `felis run --log` and the like")
     p.add_argument("--robot", help="robot name or description .toml (default: the log's robot; must match it)")
     backend_args(p, imu_help="dxl: serial device of the cat's IMU (logged; the replay does not steer by it)")
+    trace_option(p)
     p.add_argument("--servo-params", type=Path, metavar="FILE",
                    help="simulated servos' parameters from `felis sysid` (sim backend or --port virtual)")
     p.add_argument("--speed", type=finite, default=1.0,
@@ -67,8 +68,9 @@ def check_options(args, backend: str) -> Path:
     """The options alone, before the log is read; returns the replay's log path."""
     if backend == "sim" and args.port is not None:
         raise ParameterError("--port needs --backend dxl")
-    if backend == "sim" and (args.robot_id or args.calibration or args.imu_port):
-        raise ParameterError("--robot-id, --calibration and --imu-port are for servos: they need --backend dxl")
+    if backend == "sim" and (args.robot_id or args.calibration or args.imu_port or args.trace):
+        raise ParameterError("--robot-id, --calibration, --imu-port and --trace are for servos: they need --backend "
+                             "dxl")
     if not 0 < args.speed <= MAX_SPEED:
         raise ParameterError(f"--speed must be within 0…{MAX_SPEED:g} (1: as recorded), got {args.speed:g}")
     if backend == "dxl" and args.speed > 1:
@@ -175,7 +177,7 @@ def cmd_replay(args) -> int:
     ep = Episode(robot=args.robot or spec.name, controller="replay", duration=(t_to - t_from) / args.speed + 1.0,
                  log=log_path, clock="wall" if backend_name == "dxl" else "sim", rate_hz=rate, backend=backend_name,
                  port=args.port, baud=args.baud, imu_port=args.imu_port, robot_id=args.robot_id,
-                 calibration=args.calibration, yes=args.yes, servo_params=args.servo_params)
+                 calibration=args.calibration, yes=args.yes, servo_params=args.servo_params, trace=args.trace)
     # the backends' own checks (port, calibration, servo parameters, log path); the replay needs no IMU to steer
     # and draws no markers, so they get no controller
     backend = (_Dxl if backend_name == "dxl" else _Sim)(ep, spec, None)

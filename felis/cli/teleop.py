@@ -20,7 +20,7 @@ import math
 from pathlib import Path
 
 from felis.cli import output
-from felis.cli.args import baud_rate, finite, live_option
+from felis.cli.args import baud_rate, finite, live_option, trace_option
 from felis.controllers.teleop import RAMP_S, JogController, TeleopController, parse_map, resolve_map
 from felis.errors import ParameterError
 from felis.files import check_target
@@ -59,6 +59,7 @@ def register(sub) -> None:
                    "(default 3600; Ctrl-C ends it earlier)")
     p.add_argument("--log", type=Path, help="write an MCAP log here (.mcap): the follower and the leader")
     live_option(p)
+    trace_option(p)  # the follower's bus (dxl)
     p.add_argument("--json", action="store_true", help="print the run report as JSON")
     p.set_defaults(func=cmd_teleop)
 
@@ -70,6 +71,8 @@ def _check(args) -> None:
         raise ParameterError("--port is the follower's bus: it needs --backend dxl")
     if args.backend == "sim" and args.calibration is not None:
         raise ParameterError("--calibration calibrates the follower's servos: it needs --backend dxl")
+    if args.backend == "sim" and args.trace is not None:
+        raise ParameterError("--trace records the follower's Dynamixel bus: it needs --backend dxl")
     if args.keyboard and args.leader_port is not None:
         raise ParameterError("--keyboard jogs the follower by itself: give --keyboard or --leader-port, not both")
     if not args.keyboard and args.leader_port is None:
@@ -233,14 +236,17 @@ def _follower(args, spec, calibration, stack: contextlib.ExitStack, warnings: li
         robot = stack.enter_context(MujocoRobot(spec))
         return robot, model_scene(robot.model), MujocoPoses(robot), meta
     from felis.drivers.dynamixel.robot import DynamixelRobot
+    from felis.drivers.dynamixel.trace import PacketTrace, TracedBus
     from felis.drivers.ports import is_virtual, open_ports
     from felis.sim.scene import hardware_view
 
+    trace = None if args.trace is None else stack.enter_context(PacketTrace(args.trace))  # closed after the robot
     opened = stack.enter_context(open_ports(args.port, robot=args.robot, baud=args.baud, bus=False, sim=True))
     if calibration is None and not is_virtual(opened.name):
         warnings.append("no calibration: the follower's joint zeros are the servos' raw centre ticks; pass "
                         "--calibration FILE (`felis calibrate`)")
-    robot = stack.enter_context(DynamixelRobot(spec, opened.port, args.baud, calibration=calibration))
+    bus = None if trace is None else TracedBus(opened.port, args.baud, trace=trace)
+    robot = stack.enter_context(DynamixelRobot(spec, opened.port, args.baud, calibration=calibration, bus=bus))
     warnings.extend(robot.warnings)
     meta.update(port=opened.name, baud=args.baud)
     view = hardware_view(spec)
