@@ -10,7 +10,7 @@ from felis.cli import output
 from felis.cli.args import group
 from felis.logs.export import export_csv
 from felis.logs.plot import plot_log
-from felis.logs.runlog import log_info
+from felis.logs.reader import log_info
 
 
 def register(sub) -> None:

@@ -11,7 +11,7 @@ aligned in log time after the approach (`felis.logs.compare.position_error`).
 
 Refused in one line, before anything is opened or written: a log of another robot (``--robot`` differs from
 the log's, or the log's joints are not the description's), a log with no sent commands (a ``felis monitor``
-recording), a log of felis 0.2's form (`felis.logs.runlog.read_log` says what to do), ``--speed`` above 1 on
+recording), a log of felis 0.2's form (`felis.logs.reader.read_log` says what to do), ``--speed`` above 1 on
 servos, a window (``--from``/``--to``) outside the log's commands.
 """
 
@@ -30,7 +30,8 @@ from felis.cli.results import exit_code, print_result
 from felis.controllers.replay import Commands, ReplayController, approach_time
 from felis.errors import ParameterError, UnknownRobotError
 from felis.logs.compare import Comparison, position_error
-from felis.logs.runlog import LogData, RunLog, read_log
+from felis.logs.reader import LogData, read_log
+from felis.logs.runlog import RunLog
 from felis.loop import first_read, run_loop
 from felis.safety import SafetyConfig
 from felis.spec import RobotSpec, load_spec
@@ -68,7 +69,7 @@ def check_options(args, backend: str) -> Path:
     """The options alone, before the log is read; returns the replay's log path."""
     if backend == "sim" and args.port is not None:
         raise ParameterError("--port needs --backend dxl")
-    if backend == "sim" and (args.robot_id or args.calibration or args.imu_port or args.trace):
+    if backend == "sim" and (args.robot_id or args.calibration or args.imu_port or getattr(args, "trace", None)):
         raise ParameterError("--robot-id, --calibration, --imu-port and --trace are for servos: they need --backend "
                              "dxl")
     if not 0 < args.speed <= MAX_SPEED:
@@ -177,7 +178,8 @@ def cmd_replay(args) -> int:
     ep = Episode(robot=args.robot or spec.name, controller="replay", duration=(t_to - t_from) / args.speed + 1.0,
                  log=log_path, clock="wall" if backend_name == "dxl" else "sim", rate_hz=rate, backend=backend_name,
                  port=args.port, baud=args.baud, imu_port=args.imu_port, robot_id=args.robot_id,
-                 calibration=args.calibration, yes=args.yes, servo_params=args.servo_params, trace=args.trace)
+                 calibration=args.calibration, yes=args.yes, servo_params=args.servo_params,
+                 trace=getattr(args, "trace", None))
     # the backends' own checks (port, calibration, servo parameters, log path); the replay needs no IMU to steer
     # and draws no markers, so they get no controller
     backend = (_Dxl if backend_name == "dxl" else _Sim)(ep, spec, None)

@@ -27,7 +27,7 @@ import numpy as np
 
 from felis.errors import LogError
 from felis.files import prepare_parent, write_atomic
-from felis.logs.runlog import channel_messages, read_log
+from felis.logs.reader import channel_messages, read_log
 from felis.rotations import tilt_deg
 
 

@@ -52,7 +52,7 @@ class _Latch(ServerListener):
 
 
 class LiveView:
-    """A Foxglove WebSocket server on its own SDK context; `felis.logs.runlog.McapLog` logs to ``context``."""
+    """A Foxglove WebSocket server on its own SDK context; `felis.logs.mcap.McapLog` logs to ``context``."""
 
     def __init__(self, address: str | tuple[str, int], name: str = "felis"):
         host, port = parse_address(address) if isinstance(address, str) else address

@@ -18,7 +18,7 @@ The messages (package ``felis``, proto3; every field written, zeros included; Na
     message Base       { double height = 1; }               // m, the robot's reference site above the floor
     message Timing     { double control_ms = 1; }           // read → compute → safety → write, this tick
 
-`as_dict` turns a decoded message back into the dict the JSON form had (what `felis.logs.runlog.read_log` reads).
+`as_dict` turns a decoded message back into the dict the JSON form had (what `felis.logs.reader.read_log` reads).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 watched servo per tick.
 
 CSV: one row per servo per sample, columns `FIELDS` (hardware errors joined by ``;``), flushed each sample.
-MCAP (and the live view): written by the run logs' writer (`felis.logs.runlog.McapLog`: chunked, indexed,
+MCAP (and the live view): written by the run logs' writer (`felis.logs.mcap.McapLog`: chunked, indexed,
 flushed every ``FLUSH_S``, epoch-ns log times from the monitor's start, the same time base as run logs), with
 
 - ``/meta`` first (kind "monitor", the servo IDs, their joint names, the robot when known), so ``felis log
@@ -24,7 +24,8 @@ import numpy as np
 from foxglove.messages import JointStates
 
 from felis.errors import ParameterError
-from felis.logs.runlog import McapLog, jsonable
+from felis.logs.mcap import McapLog
+from felis.logs.schemas import jsonable
 from felis.logs.wire import JointStatesEncoder
 
 FIELDS = ("t", "id", "stale", "position", "velocity", "current", "load", "temperature", "voltage",

@@ -21,7 +21,7 @@ import numpy as np
 
 from felis.errors import LogError, ParameterError
 from felis.files import write_atomic
-from felis.logs.runlog import LogData, read_log
+from felis.logs.reader import LogData, read_log
 from felis.rotations import tilt_deg
 
 

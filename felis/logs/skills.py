@@ -93,7 +93,7 @@ def phase_text(g, source: str) -> bytes:
 class SkillChannels:
     """Loop monitor: each tick, ``/balance`` from ``assessment()`` (None: nothing this tick) and ``/phase`` from
     ``gate()`` (the gait gate, t → gait or None; itself None when there is none) into ``log``
-    (`felis.logs.runlog.McapLog`)."""
+    (`felis.logs.mcap.McapLog`)."""
 
     def __init__(self, log, assessment: Callable[[], object] | None, gate: Callable[[], object] | None):
         self.log, self._assessment, self._gate = log, assessment, gate

@@ -1,4 +1,4 @@
-"""Assertions on a run log (`felis.logs.runlog.LogData`, or a `felis.testing.runner.RunResult` holding one).
+"""Assertions on a run log (`felis.logs.reader.LogData`, or a `felis.testing.runner.RunResult` holding one).
 
 Each fails with an `AssertionError` whose message says what an engineer needs to act on: which joint or
 event, when (run time, s), the value and by how much it missed, and what the log held instead. Misuse (a
@@ -27,7 +27,7 @@ import numpy as np
 from felis.errors import ParameterError
 
 if TYPE_CHECKING:
-    from felis.logs.runlog import LogData
+    from felis.logs.reader import LogData
 
 FAULT_EVENTS = ("watchdog", "comm_lost", "hardware_error", "torque_lost", "bus_watchdog", "imu_lost", "read_failed",
                 "nonfinite_held")
@@ -204,7 +204,7 @@ def _channel_faults(data: LogData, t0: float) -> tuple[list, list, list[tuple[fl
     """From ``/faults`` (JSON, written when they change): each joint's first hardware error and each joint's first
     stale reading, as (t, line), and the count of failed transactions, as (t, count) where it changed; t in run
     time (robot clock − ``t0``)."""
-    from felis.logs.runlog import channel_messages  # late: the log reader
+    from felis.logs.reader import channel_messages  # late: the log reader
     from felis.servos import hardware_error_names
 
     hardware: list[tuple[float, str]] = []

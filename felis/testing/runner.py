@@ -1,6 +1,6 @@
 """One controller run for a test: `felis.loop.run_loop` with an MCAP run log, the log read back.
 
-`run_controller` returns a `RunResult`: the loop's `LoopReport` and the log as `felis.logs.runlog.LogData`
+`run_controller` returns a `RunResult`: the loop's `LoopReport` and the log as `felis.logs.reader.LogData`
 (what `read_log` gives: joint states and commands, events, the summary), so a test asserts on what the file
 holds, as an engineer reading the log would (`felis.testing.assertions`). The clock follows the robot: a
 simulation runs on simulated time (as fast as it steps), hardware and servo-in-the-loop on the wall clock.
@@ -21,7 +21,7 @@ from felis.errors import ParameterError
 from felis.hal import Controller, Robot, State
 
 if TYPE_CHECKING:
-    from felis.logs.runlog import LogData
+    from felis.logs.reader import LogData
     from felis.loop import LoopReport, Monitor
     from felis.safety import SafetyConfig
 
@@ -88,6 +88,6 @@ def run_controller(robot: Robot, controller: str | Controller, seconds: float, *
     if runlog is None:
         return RunResult(report, None, None)
     runlog.close({"run": report.as_dict()})
-    from felis.logs.runlog import read_log
+    from felis.logs.reader import read_log
 
     return RunResult(report, read_log(log), Path(log))

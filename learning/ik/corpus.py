@@ -16,7 +16,7 @@ from felis.controllers.arm_posture import DT
 from felis.controllers.trajectories import Trajectory
 from felis.errors import TrajectoryError
 from felis.files import write_atomic
-from felis.logs.runlog import read_log
+from felis.logs.reader import read_log
 
 ARM_JOINTS = ("joint1", "joint2", "joint3", "joint4")
 _FORMAT = "felis-ik-corpus"

@@ -32,7 +32,7 @@ controller's commanded ``frequency_hz``. At 100 Hz a touchdown time is known to 
 interval to ±2 % at 2 Hz; the medians keep the estimate within that (measured: ≤ 2.1 % over every
 steady segment of the default sets, most within 1 %).
 
-**Logs** (`from_log`): a felis run log (MCAP, `felis.logs.runlog.read_log`); the states' t, q and foot contacts
+**Logs** (`from_log`): a felis run log (MCAP, `felis.logs.reader.read_log`); the states' t, q and foot contacts
 (when logged; the virtual bus and the servos report none), resampled by linear interpolation (nearest
 sample for contacts) onto a uniform grid at the run's rate when the times are irregular (a wall-clock
 run). The clock fields are unknown: NaN phase, zero frequency and amplitude, stepping False.
@@ -241,7 +241,7 @@ def from_log(path: str | Path, rate_hz: float | None = None, name: str | None = 
     PhaseError (one line) for a missing file, a file that is not a felis run log, no state messages,
     non-increasing times, less than 2 s of states, or a NaN joint value (naming the joint and time).
     """
-    from felis.logs.runlog import read_log
+    from felis.logs.reader import read_log
 
     path = Path(path)
     try:

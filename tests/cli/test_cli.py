@@ -313,7 +313,7 @@ def test_demo(tmp_path):
     assert (run / "drop.png").read_bytes()[:8] == PNG_MAGIC
     assert (run / "drop.mcap").read_bytes().startswith(MCAP_MAGIC)
 
-    from felis.logs.runlog import log_info, read_log
+    from felis.logs.reader import log_info, read_log
 
     # part 1: servo-in-the-loop through the virtual bus: the whole hardware path, 50 Hz wall clock
     bus = log_info(run / "stand_dxl.mcap")

@@ -125,7 +125,7 @@ def test_monitor_rate_and_exports(tmp_path, vb):
     with open(tmp_path / "m.mcap", "rb") as f:
         n = sum(1 for _ in make_reader(f).iter_messages(topics=["/monitor"]))
     assert n == summary["samples"]
-    from felis.logs.runlog import read_log
+    from felis.logs.reader import read_log
 
     data = read_log(tmp_path / "m.mcap")  # the run logs' reader: joint states by joint name, epoch-ns times
     assert data.joints == list(load_spec("cat").names) and len(data.t) == n and np.isfinite(data.q).all()

@@ -28,7 +28,7 @@ from felis.calib.poses import PoseFile, load, poses_path, save, tick_in_joint_un
 from felis.cli.main import main
 from felis.drivers.dynamixel.bus import DynamixelBus
 from felis.drivers.virtual import VirtualBus
-from felis.logs.runlog import read_log
+from felis.logs.reader import read_log
 from felis.spec import load_spec
 
 BAUD = 1_000_000

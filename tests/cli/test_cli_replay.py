@@ -24,7 +24,8 @@ from felis.cli.main import main
 from felis.cli.replay import check_options, commands_of, robot_of, window
 from felis.errors import ParameterError
 from felis.hal import State
-from felis.logs.runlog import RunLog, read_log
+from felis.logs.reader import read_log
+from felis.logs.runlog import RunLog
 from felis.spec import load_spec
 
 RMS_BOUND = math.radians(2.0)  # rad, per joint: measured ≤ 0.7° (0.3° on a quiet machine)

@@ -32,7 +32,7 @@ from felis.drivers.dynamixel.bus import DynamixelBus
 from felis.drivers.dynamixel.leader import LeaderArm
 from felis.drivers.virtual import VirtualBus, spawn
 from felis.errors import CommError
-from felis.logs.runlog import channel_messages, read_log
+from felis.logs.reader import channel_messages, read_log
 from felis.spec import load_spec
 
 FOLLOWER_IDS = (11, 12, 13, 14, 15)

@@ -24,7 +24,7 @@ import pytest
 from felis.drivers.dynamixel.bus import DynamixelBus, PortError, port_holders
 from felis.drivers.dynamixel.robot import BUS_WATCHDOG_S, DynamixelRobot
 from felis.drivers.virtual import VirtualBus, spawn
-from felis.logs.runlog import log_info
+from felis.logs.reader import log_info
 from felis.loop import run_loop
 from felis.sim.servo_in_loop import virtual_bus
 from felis.spec import load_spec

@@ -19,7 +19,7 @@ from felis.hal import Imu, State
 from felis.learning.landing.evaluate import LandingSim
 from felis.learning.landing.policy import LANDING_HEIGHT_M
 from felis.logs.messages import as_dict
-from felis.logs.runlog import protobuf_class
+from felis.logs.reader import protobuf_class
 from felis.scenarios.drop import Drop
 from felis.spec import load_spec
 
@@ -142,7 +142,7 @@ def test_cli_run_landing_drop_on_mujoco(tmp_path, policy):
 def test_cli_run_landing_drop_through_the_virtual_bus(tmp_path, policy):
     from mcap.reader import make_reader
 
-    from felis.logs.runlog import read_log
+    from felis.logs.reader import read_log
 
     out = _ok(_felis(tmp_path, "run", "landing", "--robot", "cat", "--height", "1", "--roll", "180",
                      "--policy", str(policy), "--backend", "dxl", "--port", "virtual", "--log", "drop.mcap", "--json"))

@@ -252,7 +252,8 @@ def test_exception_in_with_block_turns_torque_off():
 
 
 def test_logged_events_match_counters_through_read_failures(tmp_path):
-    from felis.logs.runlog import RunLog, read_log
+    from felis.logs.reader import read_log
+    from felis.logs.runlog import RunLog
 
     robot = FlakyCat(fail_ticks=[6, 7])
     with robot, RunLog(tmp_path / "r.mcap", CAT) as log:

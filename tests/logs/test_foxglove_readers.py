@@ -26,7 +26,8 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from felis.logs.messages import BASE, IMU, TIMING, contacts_message
 from felis.logs.monitorlog import MonitorExport
-from felis.logs.runlog import FAULTS_SCHEMA, jsonable, protobuf_class, schema_of
+from felis.logs.reader import protobuf_class
+from felis.logs.schemas import FAULTS_SCHEMA, jsonable, schema_of
 from felis.logs.skills import BALANCE_SCHEMA, PHASE_SCHEMA
 from felis.logs.wire import FrameTransformsEncoder, JointStatesEncoder
 from tests.logs.foxglove_rules import Rejected, parse_json_schema
@@ -269,7 +270,7 @@ def test_csv_export_has_every_per_tick_channel(balance_log, tmp_path):
     import csv
 
     from felis.logs.export import export_csv
-    from felis.logs.runlog import channel_messages, read_log
+    from felis.logs.reader import channel_messages, read_log
 
     files = {p.name: p for p in export_csv(balance_log, tmp_path / "csv")}
     assert {"joint_states.csv", "joint_commands.csv", "imu.csv", "events.csv", "balance.csv", "phase.csv",

@@ -20,7 +20,8 @@ import websockets
 from felis.controllers import PoseController
 from felis.errors import ParameterError
 from felis.logs.live import LiveView, parse_address
-from felis.logs.runlog import RunLog, protobuf_class
+from felis.logs.reader import protobuf_class
+from felis.logs.runlog import RunLog
 from felis.loop import run_loop
 from felis.sim import MujocoRobot
 from felis.sim.scene import MujocoPoses, model_scene

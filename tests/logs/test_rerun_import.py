@@ -16,7 +16,7 @@ from collections import Counter
 
 import pytest
 
-from felis.logs.runlog import read_log
+from felis.logs.reader import read_log
 from felis.sim.robot import load_model, model_path
 from felis.spec import load_spec
 

@@ -22,7 +22,8 @@ from felis.errors import LogError
 from felis.hal import Command, Faults, Imu, State
 from felis.logs.messages import as_dict
 from felis.logs.plot import plot_log
-from felis.logs.runlog import LogData, RunLog, log_info, protobuf_class, read_log
+from felis.logs.reader import LogData, log_info, protobuf_class, read_log
+from felis.logs.runlog import RunLog
 from felis.rotations import tilt_deg
 from felis.spec import load_spec
 
@@ -162,7 +163,8 @@ CHILD = textwrap.dedent("""
     import sys, time
     import numpy as np
     from felis.hal import Command, Imu, State
-    from felis.logs.runlog import FLUSH_WALL_S, RunLog
+    from felis.logs.mcap import FLUSH_WALL_S
+    from felis.logs.runlog import RunLog
     from felis.spec import load_spec
     spec = load_spec("cat")
     stop, paced = int(sys.argv[2]), sys.argv[3] == "paced"
@@ -193,7 +195,7 @@ def test_killed_process_loses_at_most_the_flush_interval(tmp_path, stop, pace):
     """SIGKILL right after tick ``stop`` was logged (the child waits for it, so no race): the log holds every
     tick up to a few before, in order, without gaps. A run at the pace of the clock loses at most FLUSH_S of run
     time plus one tick; one faster than real time at most its last FLUSH_WALL_S of wall time, plus one tick."""
-    from felis.logs.runlog import FLUSH_S
+    from felis.logs.mcap import FLUSH_S
 
     path = tmp_path / "crash.mcap"
     proc = subprocess.Popen([sys.executable, "-c", CHILD, str(path), str(stop or 0), pace], stdin=subprocess.PIPE,

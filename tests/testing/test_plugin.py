@@ -152,7 +152,7 @@ def test_a_failing_test_still_closes_everything(pytester):
         assert set(torque.values()) == {0}, f"{name}: torque left on: {torque}"
     assert got["vb"].bus._server is not None and not got["vb"].bus._server.is_alive()
     assert got["child"].process.proc.returncode is not None, "the child bus process outlived the test"
-    from felis.logs.runlog import read_log
+    from felis.logs.reader import read_log
 
     log = read_log(got["log_c"])
     assert log.complete and log.summary == {"error": "run aborted"}
