@@ -41,7 +41,10 @@ def register(sub) -> None:
                    help="sim: the follower in MuJoCo; dxl: Dynamixel servos on --port (default sim)")
     p.add_argument("--port", help="dxl: the follower's serial device, or 'virtual' (a virtual bus backed by MuJoCo)")
     p.add_argument("--baud", type=baud_rate, default=1_000_000, help="dxl: the follower's baud rate (default 1000000)")
+    p.add_argument("--robot-id", help="dxl: the follower's calibration by robot id (`felis calibrate --id`)")
     p.add_argument("--calibration", type=Path, metavar="FILE", help="dxl: the follower's calibration file")
+    p.add_argument("--yes", action="store_true", help="dxl: apply the follower's EEPROM setting differences without "
+                   "asking")
     p.add_argument("--leader-port", help="the leader arm's serial device (its own bus)")
     p.add_argument("--leader-robot", default=LEADER, help=f"the leader's description (default {LEADER})")
     p.add_argument("--leader-baud", type=baud_rate, default=1_000_000, help="the leader's baud rate (default 1000000)")
@@ -69,8 +72,10 @@ def _check(args) -> None:
     """Every option on its own, before anything is loaded or opened."""
     if args.backend == "sim" and args.port is not None:
         raise ParameterError("--port is the follower's bus: it needs --backend dxl")
-    if args.backend == "sim" and args.calibration is not None:
-        raise ParameterError("--calibration calibrates the follower's servos: it needs --backend dxl")
+    if args.backend == "sim" and (args.calibration is not None or args.robot_id is not None):
+        raise ParameterError("--calibration and --robot-id calibrate the follower's servos: they need --backend dxl")
+    if args.calibration is not None and args.robot_id is not None:
+        raise ParameterError("give the follower's calibration as --robot-id or --calibration, not both")
     if args.backend == "sim" and args.trace is not None:
         raise ParameterError("--trace records the follower's Dynamixel bus: it needs --backend dxl")
     if args.keyboard and args.leader_port is not None:
@@ -117,7 +122,11 @@ def cmd_teleop(args) -> int:
         leader_spec = load_spec(args.leader_robot)
         mapping = resolve_map(parse_map(args.map) if args.map is not None else None, leader_spec, spec)
         leader_cal = _calibration(args.leader_calibration, leader_spec)
-    follower_cal = _calibration(args.calibration, spec)
+    if args.calibration is not None or args.robot_id is not None:  # a bad file is one line before anything opens
+        from felis.calib.calfile import calibration_path, load
+
+        load(args.calibration or calibration_path(spec.name, args.robot_id), spec)
+    follower_cal = None  # read with the follower's EEPROM check when it opens (`_follower`)
     res = _run(args, spec, leader_spec, mapping, leader_cal, follower_cal)
     if args.json:
         output.print_json(res.as_dict())
@@ -237,14 +246,18 @@ def _follower(args, spec, calibration, stack: contextlib.ExitStack, warnings: li
         return robot, model_scene(robot.model), MujocoPoses(robot), meta
     from felis.drivers.dynamixel.robot import DynamixelRobot
     from felis.drivers.dynamixel.trace import PacketTrace, TracedBus
-    from felis.drivers.ports import is_virtual, open_ports
+    from felis.drivers.ports import open_ports
     from felis.sim.scene import hardware_view
 
     trace = None if args.trace is None else stack.enter_context(PacketTrace(args.trace))  # closed after the robot
     opened = stack.enter_context(open_ports(args.port, robot=args.robot, baud=args.baud, bus=False, sim=True))
-    if calibration is None and not is_virtual(opened.name):
-        warnings.append("no calibration: the follower's joint zeros are the servos' raw centre ticks; pass "
-                        "--calibration FILE (`felis calibrate`)")
+    # `felis run`'s checks: the calibration (--robot-id or --calibration) and the EEPROM settings, as it does them
+    from felis.cli.episode import Episode, _connect_checks
+
+    ep = Episode(robot=spec.name, controller="teleop", backend="dxl", port=opened.name, baud=args.baud,
+                 robot_id=args.robot_id, calibration=args.calibration, yes=args.yes)
+    calibration = _connect_checks(ep, spec, opened.port, trace)
+    warnings.extend(ep.warnings)
     bus = None if trace is None else TracedBus(opened.port, args.baud, trace=trace)
     robot = stack.enter_context(DynamixelRobot(spec, opened.port, args.baud, calibration=calibration, bus=bus))
     warnings.extend(robot.warnings)

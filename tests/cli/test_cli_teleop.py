@@ -197,9 +197,12 @@ def one_line(capsys, rc: int, code: int, *fragments: str) -> str:
     (("--keyboard",), ("--keyboard or --leader-port, not both",)),
     (("--port", "/dev/null"), ("needs --backend dxl",)),
     (("--leader-calibration", "/nonexistent/leader.json"), ("leader.json",)),
+    (("--robot-id", "bench-1"), ("need --backend dxl",)),
+    (("--backend", "dxl", "--port", "virtual", "--robot-id", "nobody"), ("no calibration file at",)),
     (("--live", "localhost:99999"), ("99999",)),
 ])
-def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, leader, extra, fragments):
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch, leader, extra, fragments):
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))  # no calibrations but the test's
     log = tmp_path / "teleop.mcap"
     rc = main(["teleop", "--leader-port", leader.port, "--duration", "1", "--log", str(log), *extra])
     one_line(capsys, rc, 1, *fragments)
