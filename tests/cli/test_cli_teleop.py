@@ -87,12 +87,15 @@ def wait_reads(bus, n: int, timeout: float = 30.0) -> None:
 
 
 # ----------------------------------------------------------------------------------------- tracking
-@pytest.mark.parametrize("rate", [50, 100])
-def test_follower_tracks_the_leader_with_a_measured_lag(tmp_path, capsys, leader, rate):
-    """The follower simulated in MuJoCo (the arm's servo model, gravity, inertia); the command runs in this process
-    (the leader's bus serves from a thread of it)."""
+@pytest.mark.parametrize("follower, rate", [("sim", 50), ("sim", 100), ("virtual", 50), ("virtual", 100)])
+def test_follower_tracks_the_leader_with_a_measured_lag(tmp_path, capsys, monkeypatch, leader, follower, rate):
+    """The follower simulated in MuJoCo (the arm's servo model, gravity, inertia), directly (``sim``) or behind a
+    second virtual bus, a child process the follower's servos are emulated in (``virtual``: `--port virtual`); the
+    command runs in this process (the leader's bus serves from a thread of it)."""
+    monkeypatch.setenv("FELIS_TIMEOUT_MARGIN_MS", "100")  # three processes on a loaded 2-core machine
     log = tmp_path / "teleop.mcap"
-    rc = main(["teleop", "--leader-port", leader.port, "--backend", "sim", "--rate", str(rate), "--duration", "2",
+    backend = ["--backend", "sim"] if follower == "sim" else ["--backend", "dxl", "--port", "virtual"]
+    rc = main(["teleop", "--leader-port", leader.port, *backend, "--rate", str(rate), "--duration", "2",
                "--ramp", "0.3", "--log", str(log), "--json"])
     out, err = capsys.readouterr()
     assert rc == 0, err
@@ -102,7 +105,7 @@ def test_follower_tracks_the_leader_with_a_measured_lag(tmp_path, capsys, leader
     assert not any(leader.servo(i).torque_enabled for i in range(1, 6))  # the leader stayed limp
     # the command's own measure: the lag that best aligns the follower with the leader, then the RMS error left
     with capsys.disabled():
-        print(f"\n{rate} Hz: lag {summary['lag_ms']} ms, RMS {summary['rms_deg_after_lag']:.3f}° after it "
+        print(f"\n{follower} {rate} Hz: lag {summary['lag_ms']} ms, RMS {summary['rms_deg_after_lag']:.3f}° after it "
               f"(raw {math.degrees(summary['rms_raw']):.2f}°), per joint {summary['rms_joint']}; loop {run['timing']}")
     assert 1000 / rate <= summary["lag_ms"] <= 150  # at least the tick; the XM430's velocity lag is ≈ 45 ms
     assert summary["rms_deg_after_lag"] < 3.0
