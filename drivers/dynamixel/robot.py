@@ -160,7 +160,7 @@ class DynamixelRobot(RobotBase):
         self._p_described = np.array([int(j.pid[0]) if j.pid[0] is not None
                                       else control_table(j.servo).item("position_p_gain").default
                                       for j in spec.joints], dtype=np.int64)  # Position P Gain as described
-        self._p_sent = self._p_described.copy()  # what the servos hold (`Command.stiffness` scales it)
+        self._p_sent = self._p_described  # what the servos hold (`Command.stiffness` scales it); this object: as described
         if bus_watchdog_s is not None and not 0.02 <= bus_watchdog_s <= 127 * 0.02:
             raise ValueError(f"bus_watchdog_s must be within 0.02…2.54 s (or None), got {bus_watchdog_s}")
         self.bus_watchdog_s = bus_watchdog_s
@@ -209,7 +209,7 @@ class DynamixelRobot(RobotBase):
             raise CommError(f"servos in the wrong operating mode: {'; '.join(wrong_mode)}; fix: `felis check-eeprom "
                             "--robot NAME` (writes it), or `felis torque off` then `felis write ID operating_mode N`")
         self._write_controller()
-        self._p_sent = self._p_described.copy()
+        self._p_sent = self._p_described
         if self.calibration.homing is not None:
             res = bus.sync_read(self.ids, _HOMING_OFFSET, 4, fast=False, retries=2)
             held = {i: int.from_bytes(b, "little", signed=True) for i, b in res.data.items() if b is not None}
@@ -516,6 +516,8 @@ class DynamixelRobot(RobotBase):
         """`felis.hal.Command.stiffness` as Position P Gain = round(P·s) (RAM), one sync write of the joints whose
         gain changes (none on most ticks); None puts the described gains back."""
         if stiffness is None:
+            if self._p_sent is self._p_described:  # the hot path: nothing to do on a tick without compliance
+                return None
             p = self._p_described
         else:
             s = np.asarray(stiffness, dtype=float)
@@ -525,7 +527,7 @@ class DynamixelRobot(RobotBase):
         changed = np.flatnonzero(p != self._p_sent)
         if changed.size:
             self.bus.sync_write(_P_GAIN, 2, {self.ids[k]: int(p[k]).to_bytes(2, "little") for k in changed})
-            self._p_sent = p.copy()
+        self._p_sent = p
         return None if stiffness is None else p / self._p_described
 
     def _advance(self, dt: float) -> None:
