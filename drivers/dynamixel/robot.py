@@ -160,7 +160,7 @@ class DynamixelRobot(RobotBase):
         self._p_described = np.array([int(j.pid[0]) if j.pid[0] is not None
                                       else control_table(j.servo).item("position_p_gain").default
                                       for j in spec.joints], dtype=np.int64)  # Position P Gain as described
-        self._p_sent = self._p_described  # what the servos hold (`Command.stiffness` scales it); this object: as described
+        self._p_sent = self._p_described  # what the servos hold; this very object: P as described (Command.stiffness)
         if bus_watchdog_s is not None and not 0.02 <= bus_watchdog_s <= 127 * 0.02:
             raise ValueError(f"bus_watchdog_s must be within 0.02…2.54 s (or None), got {bus_watchdog_s}")
         self.bus_watchdog_s = bus_watchdog_s
