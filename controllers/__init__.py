@@ -31,6 +31,7 @@ from felis.errors import ParameterError
 from felis.hal import Controller
 from felis.learning.balance.selector import load_selector
 from felis.learning.ik.solver import IkSolver
+from felis.learning.landing.motion import is_motion_file, load_motion
 from felis.learning.landing.policy import DEFAULT_POLICY, load_policy
 from felis.learning.phase.estimator import PhaseEstimator
 
@@ -103,8 +104,16 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
 
 
 def _landing(policy=None, drop_height: float | None = None) -> Controller:
-    """The falling cat's evolved landing nets (seed 000): the shipped policy unless a file is given;
-    ``drop_height`` (m) where the robot reports no height (hardware: free-fall prediction)."""
+    """The falling cat's evolved landing nets (seed 000): the shipped policy unless a file is given; a ``.json``
+    file is an open-loop whole-body motion searched for one drop (`felis.learning.landing.motion`), which must
+    run from the height it was searched for. ``drop_height`` (m) where the robot reports no height (hardware:
+    free-fall prediction)."""
+    if policy is not None and is_motion_file(policy):
+        rule, _ = load_motion(policy)  # ParameterError: one line
+        if drop_height is not None and abs(drop_height - rule.height_m) > 1e-6:
+            raise ParameterError(f"{policy}: a motion timed for a drop from {rule.height_m:g} m, not "
+                                 f"{drop_height:g} m: run it with --height {rule.height_m:g}")
+        return LandingController(rule, drop_height=drop_height)
     behaviour, _ = load_policy(DEFAULT_POLICY if policy is None else policy)  # PolicyError: one line
     return LandingController(behaviour, drop_height=drop_height)
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from felis.cli import output
 from felis.cli.args import live_option
 from felis.errors import ParameterError
+from felis.learning.landing.designs import DESIGNS
 
 DEFAULT_TRAIN_OUT = Path("runs/train-landing/landing.npz")
 
@@ -81,8 +82,14 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--checkpoint", type=Path, metavar="DIR",
                    help="optimum: append each finished drop to DIR/optimum.jsonl (with --resume: skip those)")
     e.add_argument("--resume", action="store_true", help="optimum: continue from --checkpoint DIR")
+    e.add_argument("--motions", type=Path, metavar="DIR",
+                   help="optimum: write each drop's best motion to DIR/drop-<i>.json, a policy `felis run landing "
+                   "--policy` runs (open loop, for that drop)")
     e.add_argument("--ray-address", metavar="ADDRESS|auto|local",
                    help="optimum: search chunks of drops on a Ray cluster (pip install felis[cluster])")
+    e.add_argument("--design", default="cat", choices=list(DESIGNS),
+                   help="another buildable cat (servos, voltage, paws; docs/landing.md, the design study); "
+                   "default cat, the described one")
     e.add_argument("--seed", type=int, default=0, help="seed of random:N (default 0)")
     e.add_argument("--height", type=float, metavar="M", help="drop height for random:N (m, default 1.0)")
     e.add_argument("--workers", type=int, help="rollout threads (default: every core); optimum: processes, one "
@@ -146,6 +153,8 @@ def cmd_eval_landing(args) -> int:
 
     drops = drops_from(args.drops, args.seed, args.height)
     args.policy = args.policy or default_policy()
+    if args.design != "cat" and args.live is not None:
+        raise ParameterError("--live runs the described cat; --design is for batched evaluations")
     if args.policy == "optimum":
         if args.live is not None:
             raise ParameterError("--live needs a policy that runs in the loop; optimum searches many rollouts")
@@ -160,11 +169,11 @@ def cmd_eval_landing(args) -> int:
     else:
         bar, step = output.progress(len(drops), "drops", quiet)
         with bar:
-            outcomes = run_drops(drops, args.policy, workers=args.workers, progress=step)
+            outcomes = run_drops(drops, args.policy, workers=args.workers, progress=step, design=args.design)
     summary = summarise(outcomes)
     res = {"success_rate": summary["success_rate"], "policy": args.policy, **summary,
            "by_tilt": by_tilt(drops, [o.landed for o in outcomes]),
-           "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None}
+           "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design}
     res["drops"] = res.pop("drops")  # the per-drop list last, after the headline and the counts
     return output.emit(args, res, _print_summary)
 
@@ -178,13 +187,17 @@ def _eval_optimum(args, drops) -> int:
     if args.resume and not args.checkpoint:
         raise ParameterError("--resume needs --checkpoint DIR (where the finished drops were written)")
     output.check_json_out(args.out)
+    if args.motions is not None and args.motions.exists() and not args.motions.is_dir():
+        raise ParameterError(f"--motions {args.motions}: not a directory")
     quiet = args.json or not sys.stderr.isatty()
     bar, step = output.progress(len(drops), "drops", quiet)
     with bar:
         best = optimise_all(drops, generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address,
                             workdir=str(args.checkpoint) if args.checkpoint else None, resume=args.resume,
-                            progress=step)
+                            progress=step, design=args.design)
+    if args.motions is not None:
+        _write_motions(args.motions, best)
     landed = [o.landed for o in best]
     reasons: dict[str, int] = {}
     for o in best:
@@ -196,9 +209,27 @@ def _eval_optimum(args, drops) -> int:
            "standing_waist_m": None, "by_tilt": by_tilt(drops, landed),
            "search": {"generations": args.generations, "population": args.population, "restarts": args.restarts,
                       "rollouts": int(sum(o.rollouts for o in best))},
-           "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None,
+           "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design,
            "drops": [o.as_dict() for o in best]}
     return output.emit(args, res, _print_summary)
+
+
+def _write_motions(folder: Path, best) -> None:
+    """Each drop's best motion as a motion file (`felis.learning.landing.motion`), with the command that made it."""
+    import json
+    import shlex
+
+    from felis.files import write_atomic
+    from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
+    from felis.learning.landing.motion import motion_doc
+
+    folder.mkdir(parents=True, exist_ok=True)
+    command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    width = len(str(len(best) - 1))
+    for i, o in enumerate(best):
+        steps = int(round((o.drop.fall_time + MARGIN_S) * RATE_HZ))
+        doc = motion_doc(o.x, o.drop.as_dict(), o.landed, command, steps)
+        write_atomic(folder / f"drop-{i:0{width}d}.json", json.dumps(doc, indent=1) + "\n", "motion file")
 
 
 def _print_summary(r: dict) -> None:

@@ -202,16 +202,21 @@ def _one(args) -> LandingOutcome:
 
 
 def run_drops(drops: Sequence[Drop], policy: str = "passive", *, workers: int | None = None, robot: str = "cat",
-              progress: Callable[[int], None] | None = None, chunk: int = 256) -> list[LandingOutcome]:
+              progress: Callable[[int], None] | None = None, chunk: int = 256,
+              design: str = "cat") -> list[LandingOutcome]:
     """Run every drop with ``policy``, batched (`BatchLandingSim`: ``chunk`` cats at a time on ``workers``
     threads, default every core); results in drop order, identical whatever the number of workers (each cat
-    is stepped alone). ``progress(n)`` after each batch of n drops."""
+    is stepped alone). ``progress(n)`` after each batch of n drops. ``design``: another buildable cat
+    (`felis.learning.landing.designs.DESIGNS`)."""
+    from felis.learning.landing.designs import design_sim, get_design
+
     check_policy(policy)  # a bad policy fails here, once, as one line
+    get_design(design)
     if workers is not None and workers < 1:
         raise ParameterError(f"workers must be ≥ 1, got {workers}")
     if not drops:
         return []
-    sim = BatchLandingSim(robot, nthread=workers)
+    sim = BatchLandingSim(robot, nthread=workers) if design == "cat" else design_sim(design, nthread=workers)
     try:
         out: list[LandingOutcome] = []
         for i in range(0, len(drops), chunk):

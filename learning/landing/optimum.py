@@ -3,17 +3,7 @@
 This is the ceiling the landing goals refer to: a motion tuned for one known drop, which no policy that
 only senses the cat can beat by much. ``felis eval landing --policy optimum`` runs it.
 
-**Motion family** (`motion_table`). A closed loop through `N_WAYPOINTS` waypoints of 8 angles each —
-spine (pitch, yaw), tail (pitch, yaw), front legs (pitch, roll), hind legs (pitch, roll); the two legs of a
-pair move together (`BODY_JOINTS`), leg angles within ±1.5 rad, spine and tail within ±1 rad — run again and
-again from the release pose at the servos' top speed (each leg of the loop as many whole ticks as its
-fastest joint needs), then, ``return_s`` before the predicted touchdown √(2h/g), every joint heads straight
-to the touchdown posture at full speed: spine and tail straight, each leg pair at a searched pitch, shared
-roll and splay (within ±0.6 rad; all 0 is the release pose, legs down). Loops of the spine, of the legs
-(out across the roll axis, back along it) and of both turn the cat in the air without angular momentum
-(docs/landing.md, "What limits it"); the family reaches the zero-gravity figures that the issue quotes.
-As in every landing run, `felis.controllers.landing.LandingBatch` integrates the motion's velocities and
-holds the spine straight below 0.5 m, and the safety layer caps each step.
+**Motion family**: `felis.learning.landing.motion` (`motion_table`, `MotionRule`).
 
 **Search** (`optimise`). Parameters x ∈ [−1, 1]^55 (48 waypoint angles / their limits, the return time
 mapped onto [`RETURN_MIN_S`, `RETURN_MAX_S`], the 6 posture angles / 0.6 rad).
@@ -35,64 +25,26 @@ from dataclasses import dataclass
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.rotations import G
+from felis.learning.landing.motion import (  # noqa: F401  (the family lives there; re-exported)
+    BODY_JOINTS,
+    DIMS,
+    DT,
+    LIMITS,
+    N_POSTURE,
+    N_WAYPOINTS,
+    POSTURE_LIMIT,
+    RETURN_MAX_S,
+    RETURN_MIN_S,
+    MotionRule,
+    decode,
+    motion_table,
+)
 from felis.scenarios.drop import Drop
 from felis.scenarios.verdicts import landing_verdict
 
-DT = 0.01
-N_WAYPOINTS = 6
-BODY_JOINTS = (0, 1, 2, 3, 4, 5, 4, 5, 6, 7, 6, 7)  # 12 joints from the 8 angles of a waypoint
-LIMITS = np.array((1.0, 1.0, 1.0, 1.0, 1.5, 1.5, 1.5, 1.5))  # rad
-RETURN_MIN_S, RETURN_MAX_S = 0.05, 0.35
-POSTURE_LIMIT = 0.6  # rad: the touchdown posture's leg angles
-N_POSTURE = 6  # front pitch, front roll (common), front splay, hind pitch, hind roll, hind splay
-DIMS = N_WAYPOINTS * 8 + 1 + N_POSTURE
 SIGMA0 = 0.3
 POPULATION = 12
 GENERATIONS = 30
-
-
-def decode(x: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-    """x ∈ [−1, 1]^55 → (waypoints (6, 8) in rad, return time in s, touchdown posture (12,) in rad).
-
-    The posture moves the legs only: per pair, pitch, a roll both legs share and a splay (left + s, right − s)."""
-    x = np.clip(np.asarray(x, dtype=float), -1.0, 1.0)
-    n = N_WAYPOINTS * 8
-    w = x[:n].reshape(N_WAYPOINTS, 8) * LIMITS
-    r = RETURN_MIN_S + (x[n] + 1.0) * 0.5 * (RETURN_MAX_S - RETURN_MIN_S)
-    fp, fr, fs, hp, hr, hs = np.round(x[n + 1:n + 1 + N_POSTURE] * POSTURE_LIMIT, 3)
-    posture = np.array([0, 0, 0, 0, fp, fr + fs, fp, fr - fs, hp, hr + hs, hp, hr - hs], dtype=float)
-    return w, float(r), posture
-
-
-def motion_table(x: np.ndarray, height_m: float, speed: float, n_ticks: int) -> np.ndarray:
-    """Joint velocities (n_ticks, 12) in rad/s of the motion ``x`` (module doc) for a drop from ``height_m``,
-    joints at ``speed`` rad/s; tick k's row is the velocity the controller integrates at t = k·DT."""
-    w, return_s, posture = decode(x)
-    w = np.round(w, 3)[:, BODY_JOINTS]
-    back_at = max(1, int(round((math.sqrt(2.0 * height_m / G) - return_s) / DT)))
-    path, prev, i, stalled = [np.zeros(12)], np.zeros(12), 0, 0
-    while len(path) <= back_at and stalled <= N_WAYPOINTS:  # the loop, again and again
-        p = w[i % N_WAYPOINTS]
-        i += 1
-        d = p - prev
-        ticks = math.ceil(float(np.abs(d).max()) / (speed * DT) - 1e-9)
-        if ticks <= 0:
-            stalled += 1  # every waypoint where the last one was: hold
-            continue
-        stalled = 0
-        path += [prev + d * (s / ticks) for s in range(1, ticks + 1)]
-        prev = p
-    path = path[:back_at + 1]
-    path += [path[-1]] * (back_at + 1 - len(path))
-    p = path[-1]  # then straight to the touchdown posture
-    d = posture - p
-    ticks = max(1, math.ceil(float(np.abs(d).max()) / (speed * DT) - 1e-9))
-    path += [p + d * (s / ticks) for s in range(1, ticks + 1)]
-    path += [posture] * max(0, n_ticks - len(path))
-    v = np.zeros((n_ticks, 12))
-    v[1:] = np.diff(np.array(path[:n_ticks]), axis=0) / DT
-    return v
 
 
 def _circle(sign: int) -> np.ndarray:
@@ -129,50 +81,6 @@ def seeds() -> np.ndarray:
         p[N_WAYPOINTS * 8 + 1:] = (fp, 0.0, fs, hp, 0.0, hs)
         postures.append(p)
     return np.array(loops + postures)
-
-
-class MotionRule:
-    """One motion of the family as a policy callable ``(it, t) -> (12,)`` (`felis.controllers.landing.
-    LandingController`, `felis.learning.landing.samples.rollout`): the velocity table of ``x`` for a drop from
-    ``height_m``, ``steps`` ticks long; data as ``{"kind": "whole-body", "motion_x", "height_m", "steps"}``."""
-
-    kind = "whole-body"
-
-    def __init__(self, x, height_m: float, steps: int, speed: float | None = None):
-        from felis.learning.landing.policy import MAX_SPEED
-
-        x = np.asarray(x, dtype=float)
-        if x.shape != (DIMS,) or not np.all(np.isfinite(x)):
-            raise ParameterError(f"whole-body motion: expected {DIMS} finite numbers, got shape {x.shape}")
-        if not (math.isfinite(height_m) and height_m > 0) or int(steps) < 1:
-            raise ParameterError("whole-body motion: needs a positive height_m and steps ≥ 1")
-        self.x, self.height_m, self.steps = x, float(height_m), int(steps)
-        self.table = motion_table(x, self.height_m, MAX_SPEED if speed is None else speed, self.steps)
-
-    @property
-    def duration(self) -> float:
-        return self.steps * DT
-
-    def __call__(self, it, t: float) -> np.ndarray:
-        k = int(round(float(t) / DT))
-        return self.table[k].copy() if 0 <= k < self.steps else np.zeros(12)
-
-    def as_dict(self) -> dict:
-        return {"kind": self.kind, "motion_x": [round(float(v), 6) for v in self.x], "height_m": self.height_m,
-                "steps": self.steps}
-
-    @staticmethod
-    def from_dict(d) -> MotionRule:
-        if not isinstance(d, dict) or d.get("kind") != MotionRule.kind or not isinstance(d.get("motion_x"), list):
-            raise ParameterError("whole-body motion: expected {kind: whole-body, motion_x: [...], height_m, steps}")
-        h, n = d.get("height_m"), d.get("steps")
-        if isinstance(h, bool) or not isinstance(h, int | float) or isinstance(n, bool) or not isinstance(n, int):
-            raise ParameterError("whole-body motion: height_m must be a number and steps a whole number")
-        try:
-            x = np.array(d["motion_x"], dtype=float)
-        except (TypeError, ValueError):
-            raise ParameterError("whole-body motion: motion_x must be numbers") from None
-        return MotionRule(x, float(h), n)
 
 
 class OpenLoop:
@@ -237,12 +145,13 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
     touchdown compliance (`felis.controllers.landing.LandingController`); ``outcomes``: a list that gets each
     drop's `felis.learning.landing.evaluate.LandingOutcome` too."""
     from felis.controllers.landing import LandingBatch
+    from felis.learning.landing.designs import joint_speeds
     from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
-    from felis.learning.landing.policy import MAX_SPEED
 
     n_ticks = [int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops]
     T = max(n_ticks)
-    tables = np.stack([motion_table(x, d.height_m, MAX_SPEED, T) for x, d in zip(xs, drops, strict=True)])
+    speed = joint_speeds(sim.spec)
+    tables = np.stack([motion_table(x, d.height_m, speed, T) for x, d in zip(xs, drops, strict=True)])
     ctl = LandingBatch(sim.spec, [OpenLoop(tables)], touchdown_stiffness=touchdown_stiffness)
     results = sim.batch.run(list(drops), ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
     if outcomes is not None:
@@ -319,39 +228,51 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
 
 # ------------------------------------------------------------------------------ long runs: chunks, resume
 CHECKPOINT = "optimum.jsonl"
-_SIM = None  # per evaluator worker: its batch simulation
+_SIMS: dict = {}  # per evaluator worker: its batch simulation of each design
+
+
+def _worker_sim(design: str = "cat"):
+    import multiprocessing
+
+    from felis.learning.landing.designs import design_sim
+
+    if design not in _SIMS:
+        _SIMS[design] = design_sim(design, nthread=None if multiprocessing.parent_process() is None else 1)
+    return _SIMS[design]
 
 
 def _init_worker() -> None:
-    global _SIM
-    import multiprocessing
-
-    from felis.learning.landing.evaluate import BatchLandingSim
-
-    _SIM = BatchLandingSim(nthread=None if multiprocessing.parent_process() is None else 1)
+    _worker_sim()
 
 
 def _chunk_job(job) -> list[dict]:
     index, drops, settings = job
-    return [o.as_dict() for o in optimise(drops, sim=_SIM, index=index, **settings)]
+    settings = dict(settings)
+    sim = _worker_sim(settings.pop("design", "cat"))
+    return [o.as_dict() for o in optimise(drops, sim=sim, index=index, **settings)]
 
 
 def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
                  restarts: int = 0, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
-                 chunk: int = 25, workdir: str | None = None, resume: bool = False,
-                 progress: Callable[[int], None] | None = None) -> list[DropOptimum]:
-    """`optimise` for a long list: cut into chunks of ``chunk`` drops, one chunk per evaluator worker at a time
+                 chunk: int | None = None, workdir: str | None = None, resume: bool = False,
+                 progress: Callable[[int], None] | None = None, design: str = "cat") -> list[DropOptimum]:
+    """`optimise` for a long list: cut into chunks of ``chunk`` drops (default: shared evenly among the
+    workers, at most 25 a chunk), one chunk per evaluator worker at a time
     (`felis.learning.common.evaluator`: a process pool of ``workers``, or Ray at ``ray_address``; one worker:
     this process, every core on the chunk's batch), each finished drop appended to ``workdir``/`CHECKPOINT`
     (JSON lines after a header with the settings and the drops); ``resume`` skips the drops already there.
     Results equal one `optimise` over the whole list (each drop is searched alone); ``progress(n)`` after
-    each round of chunks, n drops done in it."""
+    each round of chunks, n drops done in it. ``design``: a cat of `felis.learning.landing.designs.DESIGNS`."""
     import json
     from pathlib import Path
 
     from felis.learning.common.evaluator import make_evaluator
+    from felis.learning.landing.designs import get_design
 
+    get_design(design)  # a bad name is one line before any work
     settings = {"generations": generations, "population": population, "restarts": restarts, "seed": seed}
+    if design != "cat":  # the described cat's checkpoints stay as they were
+        settings["design"] = design
     header = {"settings": settings, "drops": [d.as_dict() for d in drops]}
     done: dict[int, DropOptimum] = {}
     ckpt = Path(workdir) / CHECKPOINT if workdir else None
@@ -376,9 +297,11 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
         else:
             ckpt.write_text(json.dumps(header) + "\n")
     todo = [i for i in range(len(drops)) if i not in done]
-    chunks = [todo[k:k + chunk] for k in range(0, len(todo), chunk)]
     ev = make_evaluator(ray_address, workers if ray_address else (workers or 1), initializer=_init_worker)
     n_workers = max(1, int(getattr(ev, "workers", 1) or 1))
+    if chunk is None:
+        chunk = max(1, min(25, math.ceil(len(todo) / n_workers)))
+    chunks = [todo[k:k + chunk] for k in range(0, len(todo), chunk)]
     try:
         for r in range(0, len(chunks), n_workers):
             group = chunks[r:r + n_workers]

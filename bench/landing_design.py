@@ -1,0 +1,136 @@
+"""The landing design study (issue 21, item 6): the per-drop optimum for other buildable cats.
+
+For each design of `felis.learning.landing.designs.DESIGNS` (other servos of the XL330/XC330 family on legs,
+tail or spine, the XL330 at its 6 V maximum, rubber paws) and each height, the per-drop optimum
+(`felis.learning.landing.optimum.optimise`, the shipped results' budget: population 12, 30 generations, one
+restart; every drop seeded by its index as in the shipped run) on the first ``--drops`` drops of
+`random:100 --seed 0`, the drops of the shipped optimum (`learning/weights/landing_optimum-*.json`). The
+described cat (``cat``) runs in the same run: the anchor every design is read against (same drops, same
+machine); the shipped results for those drops are printed beside it as a check.
+
+Each ``--chunk`` of drops of a design and height is one job in a process pool of ``--workers`` (one thread
+each), searched as one batch; jobs are ordered chunk by chunk so a run cut short still compares every design on
+the same drops; every finished drop is appended to ``--out`` (JSON lines), and ``--resume`` skips those (with
+nothing left to search it prints the table of the file).
+
+    python bench/landing_design.py [--drops 30] [--designs cat,6V] [--heights 1,3] [--workers N] \\
+        [--chunk 4] [--out FILE.jsonl [--resume]] [--json]
+    python bench/landing_design.py --drops 8 --out learning/weights/landing_design.jsonl --resume   # the table shipped
+
+A drop that does not land uses the whole budget, 733 rollouts: about 50 s of one core of the 2-core machine
+searched alone, less in a chunk. The default 30 drops × 6 designs × 2 heights takes hours on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import sys
+import time
+from pathlib import Path
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "learning" / "weights"
+SETTINGS = {"generations": 30, "population": 12, "restarts": 1, "seed": 0}  # the shipped optimum's
+
+
+def shipped(height: str) -> list[dict]:
+    return json.loads((WEIGHTS / f"landing_optimum-{height}.json").read_text())["drops"]
+
+
+def _job(job: tuple[str, str, list[int]]) -> list[dict]:
+    from felis.learning.landing.optimum import _worker_sim, optimise
+    from felis.scenarios.drop import Drop
+
+    design, height, idx = job
+    rows = shipped(height)
+    drops = [Drop(rows[i]["roll_deg"], rows[i]["pitch_deg"], rows[i]["yaw_deg"], rows[i]["height_m"]) for i in idx]
+    t0 = time.perf_counter()
+    best = optimise(drops, sim=_worker_sim(design), index=idx, **SETTINGS)
+    s = round((time.perf_counter() - t0) / len(idx), 1)
+    return [{"design": design, "height": height, "i": i, "seconds": s, **o.as_dict()} for i, o in zip(idx, best,
+                                                                                                     strict=True)]
+
+
+def main() -> int:
+    from felis.learning.landing.designs import DESIGNS, get_design
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--drops", type=int, default=30, help="the first N drops of random:100 --seed 0 (default 30)")
+    ap.add_argument("--designs", default=",".join(DESIGNS), help="comma-separated (default: all)")
+    ap.add_argument("--heights", default="1,3", help="comma-separated, of 1 and 3 m (default 1,3)")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes, one thread each")
+    ap.add_argument("--chunk", type=int, default=4, help="drops searched together in one batch (default 4; "
+                    "larger batches cost less Python per physics step)")
+    ap.add_argument("--out", type=Path, metavar="FILE.jsonl", help="append each finished drop to this file")
+    ap.add_argument("--resume", action="store_true", help="skip the drops already in --out")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    designs = [get_design(n.strip()).name for n in args.designs.split(",") if n.strip()]
+    if "cat" in designs:  # the anchor first
+        designs.remove("cat")
+        designs.insert(0, "cat")
+    heights = [f"{float(h):g}m" for h in args.heights.split(",")]
+    if not set(heights) <= {"1m", "3m"} or not 1 <= args.drops <= 100 or args.workers < 1 or args.chunk < 1:
+        ap.error("--heights of 1 and 3, --drops within 1..100, --workers ≥ 1, --chunk ≥ 1")
+    done: dict[tuple, dict] = {}
+    log = None
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        path = args.out
+        if args.resume and path.exists():
+            for line in path.read_text().splitlines():
+                try:
+                    r = json.loads(line)
+                except ValueError:
+                    continue  # a line cut by a kill
+                done[(r["design"], r["height"], r["i"])] = r
+        log = path.open("a" if args.resume else "w")
+    jobs = []
+    for c in range(0, args.drops, args.chunk):
+        for h in heights:
+            for d in designs:
+                idx = [i for i in range(c, min(args.drops, c + args.chunk)) if (d, h, i) not in done]
+                if idx:
+                    jobs.append((d, h, idx))
+    t0 = time.perf_counter()
+    n, k = sum(len(j[2]) for j in jobs), 0
+    with multiprocessing.get_context("spawn").Pool(min(args.workers, max(1, len(jobs)))) as pool:
+        for got in pool.imap_unordered(_job, jobs):
+            for r in got:
+                k += 1
+                done[(r["design"], r["height"], r["i"])] = r
+                if log is not None:
+                    log.write(json.dumps(r) + "\n")
+                    log.flush()
+                if not args.json:
+                    print(f"[{k}/{n} {time.perf_counter() - t0:.0f} s] {r['design']} {r['height']} drop {r['i']}: "
+                          f"{'landed' if r['landed'] else 'no'} ({r['seconds']} s a drop)", file=sys.stderr,
+                          flush=True)
+    if log is not None:
+        log.close()
+    table: dict = {"settings": SETTINGS, "drops": args.drops, "seconds": round(time.perf_counter() - t0, 1),
+                   "designs": {}}
+    for d in designs:
+        row = {"summary": DESIGNS[d].summary}
+        for h in heights:
+            got = [done[(d, h, i)] for i in range(args.drops) if (d, h, i) in done]
+            row[h] = {"landed": sum(r["landed"] for r in got), "of": len(got)}
+        table["designs"][d] = row
+    table["shipped_cat"] = {h: sum(r["landed"] for r in shipped(h)[:args.drops]) for h in heights}
+    if args.json:
+        print(json.dumps(table, indent=2))
+        return 0
+    print(f"per-drop optimum, first {args.drops} drops of random:100 --seed 0, {table['seconds']:.0f} s")
+    print(f"{'design':<26}" + "".join(f"{h:>12}" for h in heights) + "   what")
+    for d, row in table["designs"].items():
+        counts = "".join(f"{row[h]['landed']:>7}/{row[h]['of']:<4}" for h in heights)
+        print(f"{d:<26}{counts}   {row['summary']}")
+    counts = "".join(f"{table['shipped_cat'][h]:>7}/{args.drops:<4}" for h in heights)
+    print(f"{'(shipped results, cat)':<26}{counts}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

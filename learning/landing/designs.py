@@ -1,0 +1,142 @@
+"""Other buildable cats for the landing design study (issue 21, item 6): servos from the same family, the
+supply voltage, the paw.
+
+A `Design` changes the described cat (`felis/robots/cat.toml`, `sim/models/cat.xml`) in three ways only:
+
+* **servos per group** (``spine``, ``tail``, ``legs``): another model of the family
+  (`felis.servos.SERVOS`): its stall torque τ_s, no-load speed ω₀, factory gains, armature and friction go
+  into the MuJoCo servo (`felis.sim.servo.servo_params`), and the joint's ``max_velocity`` (the safety
+  layer's per-tick step and the optimum's joint speed) becomes its ω₀;
+* **supply voltage** V: a DC motor's stall torque and no-load speed both scale with V, so τ_s and ω₀ are the
+  datasheet's figures times V / V_nominal (the XL330 and XC330 run on 3.7–6 V; `VOLTS_MAX`);
+* **paw contact**: the feet's ``solref`` time constant τ (`sim/models/cat.xml`: 4 ms; a paw carrying a
+  quarter of the cat is a spring of k ≈ (M/4)/τ², docs/landing.md).
+
+Masses stay the model's: an XC330 is 5 g heavier than an XL330 (23 g against 18 g), 1 % of the cat per
+servo, which the study ignores. `DESIGNS` holds the study's designs, `design_sim` builds the batch simulation
+of one (`felis.learning.landing.evaluate.BatchLandingSim`), and `joint_speeds` gives the per-joint speed the
+optimum's motions run at (`felis.learning.landing.optimum.motion_table`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from felis.errors import ParameterError
+from felis.servos import SERVOS, servo_model
+from felis.spec import RobotSpec, load_spec
+
+VOLTS_MAX = {"XL330": 6.0, "XC330": 6.0}  # the families' maximum supply (ROBOTIS e-Manual: 3.7–6.0 V)
+PAW_TAU_S = 0.004  # the model's
+
+
+@dataclass(frozen=True)
+class Design:
+    """One buildable variant of the cat (module doc). Unset fields keep the description's."""
+
+    name: str
+    summary: str
+    servos: dict[str, str] = field(default_factory=dict)  # group → servo model
+    volts: float | None = None  # supply voltage for every servo (None: each model's nominal)
+    paw_tau_s: float | None = None  # the feet's contact time constant (None: the model's)
+
+    def check(self, spec: RobotSpec) -> None:
+        for group, model in self.servos.items():
+            if group not in spec.groups:
+                raise ParameterError(f"design {self.name}: the cat has no group {group!r} "
+                                     f"(it has {', '.join(spec.groups)})")
+            if model not in SERVOS:
+                raise ParameterError(f"design {self.name}: unknown servo model {model!r}")
+            m = SERVOS[model]
+            if m.stall_torque is None or m.no_load_speed is None or m.voltage is None:
+                raise ParameterError(f"design {self.name}: {model} has no datasheet figures to model it with")
+        if self.volts is not None:
+            for j in spec.joints:
+                model = self.model_of(j.name, spec)
+                top = VOLTS_MAX.get(model[:5])
+                if top is None or not (3.7 <= self.volts <= top):
+                    raise ParameterError(f"design {self.name}: {model} runs on 3.7–{top or 0:g} V, "
+                                         f"not {self.volts:g} V")
+        if self.paw_tau_s is not None and not (math.isfinite(self.paw_tau_s) and 0.0005 <= self.paw_tau_s <= 0.1):
+            raise ParameterError(f"design {self.name}: paw τ must be within 0.5–100 ms, got {self.paw_tau_s}")
+
+    def model_of(self, joint: str, spec: RobotSpec) -> str:
+        for group, model in self.servos.items():
+            if joint in spec.groups.get(group, ()):
+                return model
+        return next(j.servo for j in spec.joints if j.name == joint)
+
+
+DESIGNS: dict[str, Design] = {d.name: d for d in (
+    Design("cat", "as described: XL330-M288-T everywhere at 5 V, 4 ms paws"),
+    Design("fast-limbs", "XL330-M077-T on legs and tail (383 rpm, 0.215 N·m)",
+           servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T"}),
+    Design("strong-spine", "XC330-M181-T on the spine (129 rpm, 0.60 N·m)", servos={"spine": "XC330-M181-T"}),
+    Design("fast-limbs+strong-spine", "both of the above",
+           servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T", "spine": "XC330-M181-T"}),
+    Design("6V", "XL330-M288-T at its 6 V maximum (×1.2 speed and stall torque)", volts=6.0),
+    Design("rubber-paw", "moulded-rubber paws, τ = 2 ms (k ≈ 61 kN/m)", paw_tau_s=0.002),
+)}
+
+
+def get_design(name: str) -> Design:
+    try:
+        return DESIGNS[name]
+    except KeyError:
+        raise ParameterError(f"unknown design {name!r}; designs: {', '.join(DESIGNS)}") from None
+
+
+def design_robot(design: Design, base: RobotSpec | None = None):
+    """(spec, servo parameters per joint or None, model edit or None) of ``design``: what `BatchLandingSim`
+    takes. Without a voltage the servos are built from the spec's models as for the described cat (so the
+    ``cat`` design is the described cat, bit for bit); at another voltage from the scaled figures."""
+    from felis.sim.servo import servo_params
+
+    base = base or load_spec("cat")
+    design.check(base)
+    joints, servo = [], {}
+    for j in base.joints:
+        m = servo_model(design.model_of(j.name, base))
+        if design.volts is not None:
+            k = design.volts / m.voltage
+            m = replace(m, stall_torque=m.stall_torque * k, no_load_speed=m.no_load_speed * k)
+            servo[j.name] = servo_params(m, p_gain=m.position_p_gain, m_per_rad=j.m_per_rad)
+        if m.name != j.servo or design.volts is not None:
+            j = replace(j, servo=m.name, max_velocity=m.no_load_speed / j.m_per_rad)
+        joints.append(j)
+    spec = replace(base, joints=tuple(joints))
+    edit = None if design.paw_tau_s is None else paw_edit(design.paw_tau_s)
+    return spec, servo or None, edit
+
+
+def paw_edit(tau: float) -> Callable:
+    """`mujoco.MjSpec` edit: every foot geom's contact time constant (solref) to ``tau`` (damping ratio 1)."""
+
+    def edit(ms) -> None:
+        feet = [g for g in ms.geoms if g.name.endswith("_foot")]
+        if not feet:
+            raise ParameterError("the cat's model has no *_foot geoms: the paw cannot be changed")
+        for g in feet:
+            g.solref = [tau, 1.0]
+
+    return edit
+
+
+def design_sim(design: Design | str, *, nthread: int | None = None):
+    """`BatchLandingSim` of ``design`` (a `Design` or a name in `DESIGNS`)."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+
+    d = get_design(design) if isinstance(design, str) else design
+    spec, servo, edit = design_robot(d)
+    return BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=edit)
+
+
+def joint_speeds(spec: RobotSpec) -> float | np.ndarray:
+    """The speed each joint's motion runs at (rad/s): its ``max_velocity``; one number when all are equal (so the
+    described cat's motions are computed exactly as before designs existed)."""
+    v = spec.max_velocity
+    return float(v[0]) if np.all(v == v[0]) else v

@@ -1,0 +1,78 @@
+"""Whole-body motions as landing policies (`felis.learning.landing.motion`): motion files written by the optimum's
+``--motions``, read back exactly, run by `felis run landing --policy FILE.json`; bad files one line each."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from felis.controllers import make_controller
+from felis.errors import ParameterError
+from felis.learning.landing.motion import DIMS, MotionRule, load_motion, motion_doc
+from felis.scenarios.drop import Drop
+
+
+def _felis(*argv: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "felis", *argv], capture_output=True, text=True, timeout=timeout)
+
+
+def test_a_motion_file_reads_back_the_searched_motion_exactly(tmp_path):
+    x = np.random.default_rng(3).uniform(-1, 1, DIMS)
+    d = Drop(130.0, 5.0, 0.0, 3.0)
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(motion_doc(x, d.as_dict(), True, "felis eval …", 178)))
+    rule, drop = load_motion(path)
+    assert np.array_equal(rule.x, x) and rule.height_m == 3.0 and rule.steps == 178 and drop == d.as_dict()
+    assert np.array_equal(rule.table, MotionRule(x, 3.0, 178).table)
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "no such motion file"),
+    ("{", "not JSON"),
+    ('{"kind": "nets"}', "expected {kind: whole-body"),
+    ('{"kind": "whole-body", "motion_x": [0, 1], "height_m": 1, "steps": 10}', "expected 55 finite numbers"),
+    ('{"kind": "whole-body", "motion_x": [], "height_m": "1", "steps": 10}', "height_m must be a number"),
+    ('{"kind": "whole-body", "motion_x": [%s], "height_m": 1, "steps": 10, "drop": {"roll_deg": 1}}'
+     % ",".join(["0"] * DIMS), "'drop' must be"),
+])
+def test_bad_motion_files_are_one_line_naming_the_file(tmp_path, content, message):
+    path = tmp_path / "m.json"
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(ParameterError, match=message) as e:
+        load_motion(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_motion_runs_only_from_the_height_it_was_timed_for(tmp_path):
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(motion_doc(np.zeros(DIMS), Drop(10, 0, 0, 0.5).as_dict(), True, "", 130)))
+    assert make_controller("landing", policy=path, drop_height=0.5).policy.height_m == 0.5
+    with pytest.raises(ParameterError, match=r"timed for a drop from 0.5 m, not 1 m: run it with --height 0.5"):
+        make_controller("landing", policy=path, drop_height=1.0)
+
+
+def test_optimum_writes_motions_that_felis_run_lands(tmp_path):
+    """`felis eval landing --policy optimum --motions DIR` writes each drop's best motion; `felis run landing
+    --policy DIR/drop-0.json` runs it through the loop on MuJoCo (the sequential path) and lands as the search
+    said it would."""
+    drops = tmp_path / "drops.json"
+    drops.write_text(json.dumps([{"roll_deg": 10, "pitch_deg": 0, "yaw_deg": 0, "height_m": 0.5}]))
+    out = tmp_path / "motions"
+    r = _felis("eval", "landing", "--policy", "optimum", "--drops", str(drops), "--generations", "0", "--motions",
+               str(out), "--json", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["landed"] == 1
+    doc = json.loads((out / "drop-0.json").read_text())
+    assert doc["landed_when_searched"] is True and doc["drop"]["height_m"] == 0.5
+    assert doc["made_by"].startswith("felis eval landing --policy optimum")
+    ran = _felis("run", "landing", "--robot", "cat", "--height", "0.5", "--roll", "10", "--policy",
+                 str(out / "drop-0.json"), "--json")
+    assert ran.returncode == 0, ran.stderr
+    assert json.loads(ran.stdout)["landing"]["on_feet"] is True
+    bad = _felis("run", "landing", "--robot", "cat", "--height", "1", "--policy", str(out / "drop-0.json"))
+    assert bad.returncode != 0 and "run it with --height 0.5" in bad.stderr
