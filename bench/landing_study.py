@@ -29,6 +29,12 @@ Run (about 25 min on 2 cores; ``--quick`` for a smoke run; ``make landing-study`
 runs/landing_study.json)::
 
     MUJOCO_GL=egl .venv/bin/python bench/landing_study.py [--seeds 0 1 2] [--json OUT.json] [--ray-address A] [--quick]
+        [--samples spine|wholebody]
+
+``--samples wholebody`` (issue 21, item 7) trains on the whole-body motion samples instead
+(`felis.learning.landing.wholebody`, 24 orientations from 3 m): the 7 nearest the paper's 7 orientations by
+up-axis (`nearest_samples`) take their place as the training orientations, and orientations 1 and 4 of
+experiment 1 are the ones nearest (180, 0, 0) and (90, 0, 0); everything else is as above.
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ from felis.scenarios.drop import Drop  # noqa: E402
 
 UNTRAINED = ((160.0, 20.0, 0.0), (-110.0, 10.0, 0.0), (110.0, -30.0, 0.0), (-160.0, -20.0, 45.0))
 EXP1_ORIENTATIONS = (0, 3)  # samples 0 (180, 0, 0) and 3 (90, 0, 0): the paper's "orientation 1", and 4
+WHOLEBODY = str(Path(__file__).resolve().parents[1] / "learning" / "weights" / "landing_samples_wholebody.json")
 FULL = {"population": 16, "exp1_generations": 30, "generations_simple": 15, "generations_complex": 10}
 QUICK = {"population": 4, "exp1_generations": 2, "generations_simple": 1, "generations_complex": 1}
 
@@ -67,26 +74,54 @@ def _landed(policy: str, drops: list[Drop], workers: int | None) -> dict:
             "of": len(out), "per_drop": [bool(o.landed) for o in out]}
 
 
-def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_address: str | None = None) -> dict:
-    samples = load_samples(DEFAULT_SAMPLES)
-    train_drops = [Drop(*map(float, s.orientation), float(s.height_m)) for s in samples]
+def nearest_samples(samples, targets) -> tuple[int, ...]:
+    """For each target orientation (roll, pitch, yaw °), the index of the sample whose up-axis is nearest its
+    up-axis (each sample used once): the whole-body samples that stand in for the paper's 7 orientations."""
+    import numpy as np
+
+    from felis.rotations import euler_quat, quat_matrix
+
+    up = lambda o: quat_matrix(euler_quat(*o))[:, 2]  # noqa: E731  (the body's z-axis in the world)
+    ups = np.array([up(s.orientation) for s in samples])
+    out: list[int] = []
+    for t in targets:
+        order = np.argsort(-(ups @ up(t)), kind="stable")
+        out.append(int(next(i for i in order if int(i) not in out)))
+    return tuple(out)
+
+
+def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_address: str | None = None,
+          samples_file: str = "") -> dict:
+    """``samples_file`` "" : the paper's spine-only samples (7 orientations); else a samples file whose 7
+    samples nearest the paper's orientations (`nearest_samples`) are trained on."""
+    spine = load_samples(DEFAULT_SAMPLES)
+    if samples_file:
+        samples = load_samples(samples_file)
+        idx = nearest_samples(samples, [s.orientation for s in spine])
+    else:
+        samples, idx = spine, tuple(range(len(spine)))
+    chosen = [samples[i] for i in idx]
+    train_drops = [Drop(*map(float, s.orientation), float(s.height_m)) for s in chosen]
     untrained = [Drop(*o, TRAIN_HEIGHT_M) for o in UNTRAINED]
-    base = {"population": budget["population"], "workers": workers, "ray_address": ray_address}
-    res: dict = {"budget": budget, "untrained": [list(o) for o in UNTRAINED],
-                 "training": [list(map(float, s.orientation)) for s in samples], "seeds": {}}
+    base = {"population": budget["population"], "workers": workers, "ray_address": ray_address,
+            "samples": samples_file}
+    exp1 = tuple(idx[i] for i in EXP1_ORIENTATIONS)
+    res: dict = {"budget": budget, "untrained": [list(o) for o in UNTRAINED], "samples": samples_file or "spine",
+                 "training": [list(map(float, s.orientation)) for s in chosen], "seeds": {}}
     for seed in seeds:
         t0 = time.perf_counter()
         row: dict = {}
         for name, sim in (("f", False), ("f+similarity", True)):
             cfg = TrainConfig(seed=seed, generations_simple=budget["exp1_generations"], generations_complex=1,
-                              orientations=EXP1_ORIENTATIONS, use_similarity=sim, **base)
+                              orientations=exp1, use_similarity=sim, **base)
             r = _train(cfg, tmp / f"s{seed}-exp1-{name}")
             row[f"exp1 {name}"] = {"first_landed": r["generations_to_first_landing"]["simple"],
                                    "first_upright": r["generations_to_first_success"]["simple"],
                                    "best_f": [h["best_f"] for h in r["simple"]]}
         for name, one in (("simple-complex", False), ("one-net", True)):
             cfg = TrainConfig(seed=seed, generations_simple=budget["generations_simple"],
-                              generations_complex=budget["generations_complex"], one_net=one, **base)
+                              generations_complex=budget["generations_complex"], one_net=one,
+                              orientations=idx if samples_file else (), **base)
             where = tmp / f"s{seed}-exp2-{name}"
             _train(cfg, where)
             policy = str(where / "policy.npz")
@@ -136,11 +171,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, help="processes (default: every core)")
     ap.add_argument("--ray-address", help="train on Ray: 'local', 'auto' or a cluster address (results identical)")
     ap.add_argument("--quick", action="store_true", help="a tiny budget: a smoke run, not a measurement")
+    ap.add_argument("--samples", choices=("spine", "wholebody"), default="spine",
+                    help="the motion samples: the paper's spine-only ones (default) or the whole-body ones "
+                    "(learning/weights/landing_samples_wholebody.json; the 7 nearest the paper's orientations)")
     args = ap.parse_args(argv)
     budget = QUICK if args.quick else FULL
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="felis-landing-study-") as tmp:
-        res = study(args.seeds, budget, args.workers, Path(tmp), args.ray_address)
+        res = study(args.seeds, budget, args.workers, Path(tmp), args.ray_address,
+                    WHOLEBODY if args.samples == "wholebody" else "")
     res["seconds"] = round(time.perf_counter() - t0, 1)
     print(table(res))
     print(f"({res['seconds']} s)")

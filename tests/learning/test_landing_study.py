@@ -14,9 +14,16 @@ def bench():
     return load_bench("landing_study")
 
 
-def test_tiny_study_has_every_experiment_and_baseline(bench, tmp_path):
-    res = bench.study([5], TINY, workers=1, tmp=tmp_path)
+@pytest.mark.parametrize("samples", ["spine", "wholebody"])
+def test_tiny_study_has_every_experiment_and_baseline(bench, tmp_path, samples):
+    res = bench.study([5], TINY, workers=1, tmp=tmp_path, samples_file="" if samples == "spine" else bench.WHOLEBODY)
     row = res["seeds"]["5"]
+    if samples == "wholebody":  # the 7 whole-body samples nearest the paper's 7 orientations stand in for them
+        from felis.learning.landing.samples import load_samples
+
+        wb = load_samples(bench.WHOLEBODY)
+        assert len(res["training"]) == 7 and all(list(map(float, wb[i].orientation)) in res["training"]
+                                                 for i in bench.nearest_samples(wb, [(180, 0, 0)]))
     for name in ("f", "f+similarity"):  # experiment 1: orientations 1 and 4, generations or None (never)
         first = row[f"exp1 {name}"]["first_landed"]
         assert len(first) == 2 and all(g is None or g == 1 for g in first)
