@@ -14,7 +14,7 @@ t and contact area A of that stiffness has Young's modulus E = k·t/A. The table
 policy with stiff legs on paws of τ = 4 (the model's), 2, 8 and 16 ms, and prints k and E (t = 5 mm, A = π·(6 mm)²)
 for each, to read against rubber (Shore 40–60A: E ≈ 1.5–4 MPa) and soft silicone or foam pads (0.1–1 MPa).
 
-    python bench/landing_compliance.py [--json]      (about a minute on 2 cores)
+    python bench/landing_compliance.py [--json]      (about 130 s on 2 cores)
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
-"""``felis demo``: the tour, four runs into ``runs/<timestamp>/`` with logs, plots and videos: the cat
-through the virtual Dynamixel bus (servo-in-the-loop), a simulated drop under the shipped landing policy,
-the arm tracking a figure eight with the learned IK, the standing cat pushed under the balance monitor.
+"""``felis demo``: the tour, five runs into ``runs/<timestamp>/`` with logs, plots and videos: the cat
+through the virtual Dynamixel bus (servo-in-the-loop), a simulated drop under the shipped landing policy, a hard
+drop (tilted 120° from 3 m) under the whole-body motion the per-drop optimum found for it, the arm tracking a
+figure eight with the learned IK, the standing cat pushed under the balance monitor.
 """
 
 from __future__ import annotations
@@ -22,21 +23,24 @@ ARM_HOLD_S = 6.0  # the arm holds the figure eight's first point while its servo
 def register(sub) -> None:
     """Add ``felis demo``."""
     demo = sub.add_parser("demo", help="the cat through the virtual Dynamixel bus (servo-in-the-loop), then a "
-                          "simulated drop, the arm tracking a figure eight with the learned IK, the cat pushed "
-                          "under the balance monitor; logs, plots, video")
+                          "simulated drop, a hard drop, the arm tracking a figure eight with the learned IK, the cat "
+                          "pushed under the balance monitor; logs, plots, video")
     demo.add_argument("--out", default="runs", help="directory for runs/<timestamp>/ (default: runs)")
     demo.add_argument("--no-video", action="store_true", help="skip rendering")
     demo.set_defaults(func=cmd_demo)
 
 
 DEMO_DROP = (1.0, -50.0, -30.0, 0.0)  # height m, roll, pitch, yaw °: inside what the shipped policy lands
+HARD_MOTION = Path(__file__).resolve().parents[2] / "learning" / "weights" / "landing_hard_drop.json"
+HARD_DROP = (3.0, 120.0, 0.0, 0.0)  # the drop that motion was searched for (tilted 120°)
 
 
 def cmd_demo(args) -> int:
     """Servo-in-the-loop: the cat stands up through the virtual Dynamixel bus backed by MuJoCo (the
     whole hardware code path: DynamixelRobot, SDK, pseudo-terminal, byte-level servos, physics);
     then the cat dropped tilted from 1 m under the landing controller and the shipped evolved policy
-    (seed 000), in MuJoCo, with video; then the arm tracking a figure eight with the learned IK pipeline
+    (seed 000), in MuJoCo, with video; then a hard drop, tilted 120° from 3 m, under the searched whole-body
+    motion for it; then the arm tracking a figure eight with the learned IK pipeline
     (seed 001), with video; then the standing cat pushed, with the balance monitor's margin and alarm
     plotted (seed 004)."""
     root = Path(args.out)
@@ -57,7 +61,7 @@ def cmd_demo(args) -> int:
         print_result(results[-1], console)
         if results[-1].report.interrupted:
             return EXIT_INTERRUPTED
-    console.print("[bold]felis demo 4/4[/]: the standing cat pushed sideways: the XCoM balance monitor's margin "
+    console.print("[bold]felis demo 5/5[/]: the standing cat pushed sideways: the XCoM balance monitor's margin "
                   "and alarm, without a reaction and with the learned strategy selector (MuJoCo)")
     from felis.learning.balance.train import push_demo  # late: the push experiments (MuJoCo)
 
@@ -72,7 +76,7 @@ def cmd_demo(args) -> int:
 
 
 def _episodes(run_dir: Path, no_video: bool):
-    """The tour's first three runs: (header, a function giving their `episode` keywords when the run comes)."""
+    """The tour's first four runs: (header, a function giving their `episode` keywords when the run comes)."""
 
     def arm() -> dict:
         eight = trajectory_from("figure8")
@@ -82,12 +86,12 @@ def _episodes(run_dir: Path, no_video: bool):
                     plot=run_dir / "arm_figure8.png", meta={"demo": True})
 
     return (
-        ("[bold]felis demo 1/4[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
+        ("[bold]felis demo 1/5[/]: the cat stands up through the virtual Dynamixel bus, its servos backed "
          "by MuJoCo (DynamixelRobot → dynamixel-sdk → pty → emulated servos → physics)",
          lambda: dict(robot="cat", controller="stand", duration=3.0, backend="dxl", port=VIRTUAL,
                       rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
                       meta={"demo": True})),
-        ("[bold]felis demo 2/4[/]: the cat dropped from 1 m tilted 56° (roll -50°, pitch -30°) under the "
+        ("[bold]felis demo 2/5[/]: the cat dropped from 1 m tilted 56° (roll -50°, pitch -30°) under the "
          "landing controller running the shipped evolved policy (seed 000; MuJoCo). Held still, it lands "
          "on its back from this drop; see docs/landing.md for where the policy fails",
          # 2.5 s: the 0.45 s fall, the bounce, and the cat settled on four feet (the verdict: touchdown + 0.5 s)
@@ -95,7 +99,15 @@ def _episodes(run_dir: Path, no_video: bool):
                       drop=DEMO_DROP, controller_options={"policy": None, "drop_height": DEMO_DROP[0]},
                       log=run_dir / "drop.mcap", video=None if no_video else run_dir / "drop.mp4",
                       plot=run_dir / "drop.png", meta={"demo": True})),
-        ("[bold]felis demo 3/4[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
+        ("[bold]felis demo 3/5[/]: a hard drop: the cat released tilted 120° (roll 120°) from 3 m, under the "
+         "landing controller running the whole-body motion the per-drop optimum found for this drop (open loop: "
+         "learning/weights/landing_hard_drop.json; MuJoCo). No trained policy lands a start tilted this far yet "
+         "(docs/landing.md)",
+         lambda: dict(robot="cat", controller="landing", duration=2.5, drop=HARD_DROP,
+                      controller_options={"policy": HARD_MOTION, "drop_height": HARD_DROP[0]},
+                      log=run_dir / "hard_drop.mcap", video=None if no_video else run_dir / "hard_drop.mp4",
+                      plot=run_dir / "hard_drop.png", meta={"demo": True})),
+        ("[bold]felis demo 4/5[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
          "Posture Estimator → mean filter → exact refinement (MuJoCo; servos with PID 800/100/100, targets taken "
          "ahead by the servos' lag, 6 s at the first point while the I terms take up gravity)", arm),
     )

@@ -82,6 +82,9 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--checkpoint", type=Path, metavar="DIR",
                    help="optimum: append each finished drop to DIR/optimum.jsonl (with --resume: skip those)")
     e.add_argument("--resume", action="store_true", help="optimum: continue from --checkpoint DIR")
+    e.add_argument("--late-ticks", type=int, default=0, metavar="K",
+                   help="optimum: a motion counts only if it also lands started 1..K ticks late (a servo bus's "
+                   "latency and jitter; default 0)")
     e.add_argument("--motions", type=Path, metavar="DIR",
                    help="optimum: write each drop's best motion to DIR/drop-<i>.json, a policy `felis run landing "
                    "--policy` runs (open loop, for that drop)")
@@ -195,7 +198,7 @@ def _eval_optimum(args, drops) -> int:
         best = optimise_all(drops, generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address,
                             workdir=str(args.checkpoint) if args.checkpoint else None, resume=args.resume,
-                            progress=step, design=args.design)
+                            progress=step, design=args.design, late_ticks=args.late_ticks)
     if args.motions is not None:
         _write_motions(args.motions, best)
     landed = [o.landed for o in best]
@@ -208,6 +211,7 @@ def _eval_optimum(args, drops) -> int:
            "reasons": dict(sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))),
            "standing_waist_m": None, "by_tilt": by_tilt(drops, landed),
            "search": {"generations": args.generations, "population": args.population, "restarts": args.restarts,
+                      "late_ticks": args.late_ticks,
                       "rollouts": int(sum(o.rollouts for o in best))},
            "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design,
            "drops": [o.as_dict() for o in best]}

@@ -140,34 +140,50 @@ class DropOptimum:
 
 
 def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: float = 1.0,
-             outcomes: list | None = None) -> list[tuple[float, object]]:
+             outcomes: list | None = None, late_ticks: int = 0) -> list[tuple[float, object]]:
     """Score motions ``xs`` (B, 55) on ``drops`` (B) in one batch of ``sim`` (`BatchLandingSim`), with the legs'
     touchdown compliance (`felis.controllers.landing.LandingController`); ``outcomes``: a list that gets each
-    drop's `felis.learning.landing.evaluate.LandingOutcome` too."""
+    drop's `felis.learning.landing.evaluate.LandingOutcome` too.
+
+    ``late_ticks`` k > 0: each motion is also run started 1…k ticks late (its velocity table shifted, the joints
+    held meanwhile), as a servo bus's latency and a wall clock's jitter delay it on hardware; its score and
+    verdict are the worst of the k + 1 runs, so it lands only if it lands at every delay (the outcomes: the
+    on-time runs')."""
     from felis.controllers.landing import LandingBatch
     from felis.learning.landing.designs import joint_speeds
     from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
 
+    if late_ticks < 0:
+        raise ParameterError(f"optimum: late ticks must be ≥ 0, got {late_ticks}")
     n_ticks = [int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops]
     T = max(n_ticks)
     speed = joint_speeds(sim.spec)
     tables = np.stack([motion_table(x, d.height_m, speed, T) for x, d in zip(xs, drops, strict=True)])
+    k = int(late_ticks)
+    if k:
+        late = [np.concatenate([np.zeros((len(xs), s, 12)), tables[:, :T - s]], axis=1) for s in range(1, k + 1)]
+        tables = np.concatenate([tables, *late])
+    every = list(drops) * (k + 1)
     ctl = LandingBatch(sim.spec, [OpenLoop(tables)], touchdown_stiffness=touchdown_stiffness)
-    results = sim.batch.run(list(drops), ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
+    results = sim.batch.run(every, ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
     if outcomes is not None:
         from felis.learning.landing.evaluate import outcome_of
 
-        outcomes += [outcome_of(d, "optimum", r, sim.standing_waist_m) for d, r in zip(drops, results, strict=True)]
-    return [score(r, sim.standing_waist_m) for r in results]
+        outcomes += [outcome_of(d, "optimum", r, sim.standing_waist_m)
+                     for d, r in zip(drops, results[:len(drops)], strict=True)]
+    scored = [score(r, sim.standing_waist_m) for r in results]
+    n = len(drops)
+    return [min((scored[i + s * n] for s in range(k + 1)), key=lambda sv: sv[0]) for i in range(n)]
 
 
 def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
              restarts: int = 0, seed: int = 0, workers: int | None = None,
              progress: Callable[[int, int], None] | None = None, sim=None,
-             index: Sequence[int] | None = None) -> list[DropOptimum]:
+             index: Sequence[int] | None = None, late_ticks: int = 0) -> list[DropOptimum]:
     """The per-drop optimum of every drop (module doc); ``progress(generation, drops still searching)``.
     ``index``: each drop's index in the whole list (default 0, 1, …): its CMA-ES is seeded by it, so a drop's
-    result does not depend on how the list is cut."""
+    result does not depend on how the list is cut. ``late_ticks``: a motion must also land started that many
+    ticks late (`evaluate`); the rollouts counted include those."""
     import cma
 
     from felis.learning.landing.evaluate import BatchLandingSim
@@ -187,14 +203,14 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
         best_v: list = [None] * n
         used = np.zeros(n, dtype=int)
         # generation 0: every seed on every drop
-        res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)))
+        res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)), late_ticks=late_ticks)
         order = []
         for i in range(n):
             sc = np.array([res[i * len(S) + j][0] for j in range(len(S))])
             order.append(np.argsort(-sc, kind="stable"))
             j = int(order[i][0])
             best_s[i], best_x[i], best_v[i] = sc[j], S[j], res[i * len(S) + j][1]
-            used[i] += len(S)
+            used[i] += len(S) * (late_ticks + 1)
         for start in range(restarts + 1):
             active = [i for i in range(n) if not best_v[i].landed]
             es = {i: cma.CMAEvolutionStrategy(S[int(order[i][min(start, len(S) - 1)])], SIGMA0,
@@ -209,12 +225,12 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
                     break
                 asks = {i: np.array(es[i].ask()) for i in active}
                 batch_drops = [drops[i] for i in active for _ in range(population)]
-                res = evaluate(sim, batch_drops, np.concatenate([asks[i] for i in active]))
+                res = evaluate(sim, batch_drops, np.concatenate([asks[i] for i in active]), late_ticks=late_ticks)
                 for a, i in enumerate(active):
                     part = res[a * population:(a + 1) * population]
                     sc = np.array([r[0] for r in part])
                     es[i].tell(list(asks[i]), list(-sc))
-                    used[i] += population
+                    used[i] += population * (late_ticks + 1)
                     j = int(np.argmax(sc))
                     if sc[j] > best_s[i]:
                         best_s[i], best_x[i], best_v[i] = sc[j], asks[i][j], part[j][1]
@@ -255,14 +271,16 @@ def _chunk_job(job) -> list[dict]:
 def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
                  restarts: int = 0, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
                  chunk: int | None = None, workdir: str | None = None, resume: bool = False,
-                 progress: Callable[[int], None] | None = None, design: str = "cat") -> list[DropOptimum]:
+                 progress: Callable[[int], None] | None = None, design: str = "cat",
+                 late_ticks: int = 0) -> list[DropOptimum]:
     """`optimise` for a long list: cut into chunks of ``chunk`` drops (default: shared evenly among the
     workers, at most 25 a chunk), one chunk per evaluator worker at a time
     (`felis.learning.common.evaluator`: a process pool of ``workers``, or Ray at ``ray_address``; one worker:
     this process, every core on the chunk's batch), each finished drop appended to ``workdir``/`CHECKPOINT`
     (JSON lines after a header with the settings and the drops); ``resume`` skips the drops already there.
     Results equal one `optimise` over the whole list (each drop is searched alone); ``progress(n)`` after
-    each round of chunks, n drops done in it. ``design``: a cat of `felis.learning.landing.designs.DESIGNS`."""
+    each round of chunks, n drops done in it. ``design``: a cat of `felis.learning.landing.designs.DESIGNS`;
+    ``late_ticks``: as in `optimise`."""
     import json
     from pathlib import Path
 
@@ -273,6 +291,8 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
     settings = {"generations": generations, "population": population, "restarts": restarts, "seed": seed}
     if design != "cat":  # the described cat's checkpoints stay as they were
         settings["design"] = design
+    if late_ticks:
+        settings["late_ticks"] = int(late_ticks)
     header = {"settings": settings, "drops": [d.as_dict() for d in drops]}
     done: dict[int, DropOptimum] = {}
     ckpt = Path(workdir) / CHECKPOINT if workdir else None

@@ -307,7 +307,8 @@ def test_demo(tmp_path):
     assert {p.name for p in run.iterdir()} == {"drop.mcap", "drop.mp4", "drop.png", "stand_dxl.mcap",
                                               "stand_dxl.png", "arm_figure8.mcap", "arm_figure8.mp4",
                                               "arm_figure8.png", "push.json", "push_margin.png",
-                                              "push.mp4"}  # no temporaries
+                                              "push.mp4", "hard_drop.mcap", "hard_drop.mp4",
+                                              "hard_drop.png"}  # no temporaries
     mp4 = (run / "drop.mp4").read_bytes()
     assert len(mp4) > 1000 and mp4[4:8] == b"ftyp"
     assert (run / "drop.png").read_bytes()[:8] == PNG_MAGIC
@@ -332,13 +333,18 @@ def test_demo(tmp_path):
     landing = info["summary"]["landing"]
     assert landing["on_feet"] is True and landing["tilt_deg"] < 15  # tilted 56°, the shipped policy rights it
     text = words(r.stdout)
-    verdict = re.search(r"landed (on its feet|on its back|on its side|upright but not on its feet)", text)
-    assert verdict, r.stdout
-    assert verdict.group(1) == "on its feet"
+    verdicts = re.findall(r"landed (on its feet|on its back|on its side|upright but not on its feet)", text)
+    assert verdicts == ["on its feet", "on its feet"], r.stdout  # the 56° drop and the hard drop
+    # part 3: the hard drop, tilted 120° from 3 m, under the searched whole-body motion: on its feet too
+    hard = log_info(run / "hard_drop.mcap")["summary"]
+    assert hard["landing"]["on_feet"] is True and hard["landing"]["tilt_deg"] < 30
+    assert read_log(run / "hard_drop.mcap").meta["drop"] == {"height_m": 3.0, "roll_deg": 120.0, "pitch_deg": 0.0,
+                                                              "yaw_deg": 0.0}
+    assert (run / "hard_drop.mp4").read_bytes()[4:8] == b"ftyp"
     assert str(run.relative_to(tmp_path)) in text  # tells where the outputs are
     assert "Traceback" not in r.stderr
 
-    # part 3: the arm tracks a figure eight with the learned IK: commands exact, the measured tool near
+    # part 4: the arm tracks a figure eight with the learned IK: commands exact, the measured tool near
     arm = log_info(run / "arm_figure8.mcap")
     assert arm["robot"] == "arm" and arm["complete"] is True
     track = arm["summary"]["controller"]
@@ -346,7 +352,7 @@ def test_demo(tmp_path):
     assert track["command_error"]["max_mm"] < 1e-6 and track["tracking_error"]["median_mm"] <= 1.0  # measured 0.8
     assert (run / "arm_figure8.mp4").read_bytes()[4:8] == b"ftyp"
 
-    # part 4: the standing cat pushed: it falls without a reaction, after an early alarm; the selector's
+    # part 5: the standing cat pushed: it falls without a reaction, after an early alarm; the selector's
     # reaction keeps it up; the margin of stability is plotted with the alarm
     push = json.loads((run / "push.json").read_text())
     assert push["runs"]["none"]["fell"] and push["runs"]["none"]["lead_s"] >= 0.15

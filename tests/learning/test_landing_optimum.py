@@ -79,3 +79,18 @@ def test_chunked_resumed_runs_equal_one_run(tmp_path, sim):
     with pytest.raises(Exception, match="other drops or settings"):
         optimise_all(drops[:2], chunk=2, workdir=str(tmp_path), resume=True, **kw)
     assert json.loads((tmp_path / CHECKPOINT).read_text().splitlines()[0])["settings"]["seed"] == 1
+
+
+def test_late_ticks_judge_a_motion_by_its_worst_delay(sim):
+    """``late_ticks`` k: the motion also runs started 1…k ticks late; the score is the worst of the k + 1 runs
+    (so it can only fall as k grows) and equals the on-time score at k = 0."""
+    rng = np.random.default_rng(7)
+    xs = np.concatenate([np.zeros((1, DIMS)), rng.uniform(-1, 1, (3, DIMS))])
+    drops = [Drop(10.0, 0.0, 0.0, 0.5)] + [Drop(70.0, 10.0, 0.0, 1.0)] * 3
+    by_k = [evaluate(sim, drops, xs, late_ticks=k) for k in range(3)]
+    assert by_k[0] == evaluate(sim, drops, xs)
+    for a, b in zip(by_k, by_k[1:], strict=False):
+        assert all(sb[0] <= sa[0] for sa, sb in zip(a, b, strict=True))
+    assert all(r[0][1].landed for r in by_k)  # holding still from 0.5 m lands however late it starts
+    with pytest.raises(Exception, match="late ticks must be ≥ 0"):
+        evaluate(sim, drops[:1], xs[:1], late_ticks=-1)
