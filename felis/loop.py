@@ -46,6 +46,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from felis import shutdown
 from felis.errors import CommError, ParameterError
 from felis.hal import Command, Controller, Lifecycle, Robot, State
 from felis.safety import SafetyConfig, SafetyLayer, Watchdog
@@ -193,7 +194,10 @@ def run_loop(
             if hasattr(m, "reset"):
                 m.reset(robot.spec, state)
         wall0 = deadline = time.perf_counter()
+        signals_before = shutdown.count()
         for k in range(n_ticks):
+            if shutdown.count() > signals_before:  # a signal whose Interrupted was lost in a finaliser
+                raise shutdown.Interrupted(shutdown.received()[signals_before])
             t0 = time.perf_counter()
             try:
                 state = robot.read()

@@ -15,6 +15,9 @@ Rules:
   cut the torque-off write in half. SIGKILL cannot be caught: that is what the servos' Bus Watchdog
   is for (`felis.drivers.dynamixel.robot`).
 * The exit code of an interrupted command is 130 (`EXIT_INTERRUPTED`), whichever signal it was.
+* Python ignores an exception raised inside a finaliser (``__del__``, a weakref callback): a signal whose
+  handler runs there would be lost. The signals are counted (`count`), and `felis.loop.run_loop` raises
+  `Interrupted` at its next tick for one that arrived during the run but did not stop it.
 """
 
 from __future__ import annotations
@@ -49,6 +52,11 @@ def received() -> list[str]:
     return list(_state.received)
 
 
+def count() -> int:
+    """How many signals `signals` has received since it was entered (0 outside it)."""
+    return len(_state.received)
+
+
 def signal_name(exc: BaseException | None) -> str:
     """``"SIGTERM"`` for an `Interrupted` by SIGTERM, ``"SIGINT"`` for a plain Ctrl-C."""
     return getattr(exc, "signame", "SIGINT")
@@ -63,14 +71,15 @@ def _handler(signum, frame) -> None:
 
 
 @contextlib.contextmanager
-def signals() -> Iterator[None]:
-    """Route SIGINT, SIGTERM and SIGHUP to `Interrupted` (main thread only; elsewhere a no-op)."""
+def signals(which: tuple[int, ...] = SIGNALS) -> Iterator[None]:
+    """Route SIGINT, SIGTERM and SIGHUP (or ``which`` of them) to `Interrupted` (main thread only; elsewhere a
+    no-op)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     _state.received = []
     previous = {}
-    for s in SIGNALS:
+    for s in which:
         with contextlib.suppress(OSError, ValueError):
             previous[s] = signal.signal(s, _handler)
     try:

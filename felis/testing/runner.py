@@ -66,7 +66,10 @@ def run_controller(robot: Robot, controller: str | Controller, seconds: float, *
     None: no log). ``clock`` defaults to ``"wall"`` for a real-time robot (servos, virtual or not) and ``"sim"``
     otherwise; ``safety``, ``monitors`` and ``until`` go to `run_loop`. The robot is armed by the loop and
     disarmed at the end."""
+    import signal
+
     from felis.loop import run_loop
+    from felis.shutdown import signals
 
     ctl = controller_from(controller, robot.spec, **options)
     clock = clock or ("wall" if robot.realtime else "sim")
@@ -78,8 +81,11 @@ def run_controller(robot: Robot, controller: str | Controller, seconds: float, *
         runlog = RunLog(log, robot.spec, {"controller": str(name), "backend": "dxl" if robot.realtime else "sim",
                                           "test": True, **(meta or {})})
     try:
-        report = run_loop(robot, ctl, duration=seconds, rate_hz=rate, clock=clock, safety=safety, log=runlog,
-                          monitors=monitors, until=until)
+        # Ctrl-C through felis's handler (SIGTERM keeps its default): counted, so a run stops on it even when
+        # Python loses the KeyboardInterrupt in a finaliser (`felis.shutdown`)
+        with signals((signal.SIGINT,)):
+            report = run_loop(robot, ctl, duration=seconds, rate_hz=rate, clock=clock, safety=safety, log=runlog,
+                              monitors=monitors, until=until)
     except BaseException:
         if runlog is not None:
             with contextlib.suppress(Exception):  # the run's own exception is the one to report

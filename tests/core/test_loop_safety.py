@@ -286,3 +286,32 @@ def test_a_robot_that_reports_no_faults_runs(explicit_none, tmp_path):
     with ThirdPartyCat(explicit_none) as robot, RunLog(tmp_path / "r.mcap", robot.spec) as log:
         report = run_loop(robot, PoseController("stand"), duration=0.3, log=log)
     assert report.ok and report.ticks == 30
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the ignored Interrupted
+def test_a_signal_lost_in_a_finaliser_still_stops_the_run(cat):
+    """Python ignores an exception raised in a finaliser: a Ctrl-C whose handler runs inside a ``__del__`` raises
+    nothing. `felis.shutdown` counts it, and the loop stops at its next tick as interrupted, torque off."""
+    import gc
+    import os
+    import signal
+
+    from felis.shutdown import signals
+
+    class Finaliser:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)  # the handler runs here, its Interrupted is ignored
+            for _ in range(1000):
+                pass
+
+    def monitor(state, command):
+        monitor.ticks += 1
+        if monitor.ticks == 3:
+            Finaliser()  # made and collected at once
+            gc.collect()
+
+    monitor.ticks = 0
+    with signals():
+        report = run_loop(cat, PoseController("hold"), duration=1.0, rate_hz=50.0, monitors=[monitor])
+    assert report.stopped == "interrupted (SIGINT)" and report.ticks == 3
+    assert cat.lifecycle is not Lifecycle.ARMED
