@@ -67,7 +67,12 @@ def main() -> int:
     ap.add_argument("--resume", action="store_true", help="skip the drops already in --out")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    designs = [get_design(n.strip()).name for n in args.designs.split(",") if n.strip()]
+    from felis.errors import ParameterError
+
+    try:
+        designs = [get_design(n.strip()).name for n in args.designs.split(",") if n.strip()]
+    except ParameterError as e:
+        ap.error(str(e))
     if "cat" in designs:  # the anchor first
         designs.remove("cat")
         designs.insert(0, "cat")
