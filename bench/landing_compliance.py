@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.controllers.landing import LandingBatch
+from felis.learning.landing.designs import paw_edit
 from felis.learning.landing.evaluate import BatchLandingSim, shipped_policy
 from felis.learning.landing.optimum import DropOptimum, evaluate
 from felis.learning.landing.policy import load_policy
@@ -36,17 +37,6 @@ WEIGHTS = Path(__file__).resolve().parents[1] / "learning" / "weights"
 STIFFNESS = (1.0, 0.5, 0.25, 0.1)
 PAW_TAU_S = (0.004, 0.002, 0.008, 0.016)  # the model's first
 PAD_T_M, PAD_A_M2 = 0.005, np.pi * 0.006**2  # a 5 mm pad, 6 mm contact radius
-
-
-def paws(tau: float):
-    """`mujoco.MjSpec` edit: every foot geom's contact time constant (solref) to ``tau``."""
-
-    def edit(ms) -> None:
-        for g in ms.geoms:
-            if g.name.endswith("_foot"):
-                g.solref = [tau, 1.0]
-
-    return edit
 
 
 def summary(outcomes) -> dict:
@@ -79,7 +69,7 @@ def main() -> None:
     finally:
         sim.close()
     for tau in PAW_TAU_S[1:]:
-        paw = BatchLandingSim(sensors=paws(tau))
+        paw = BatchLandingSim(sensors=paw_edit(tau))
         try:
             for h in ("1m", "3m"):
                 optimum = [DropOptimum.from_dict(d) for d in json.loads((WEIGHTS / f"landing_optimum-{h}.json")
