@@ -189,6 +189,8 @@ def _eval_optimum(args, drops) -> int:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
     if args.resume and not args.checkpoint:
         raise ParameterError("--resume needs --checkpoint DIR (where the finished drops were written)")
+    if args.late_ticks < 0:
+        raise ParameterError(f"--late-ticks must be ≥ 0 (ticks a motion may start late), got {args.late_ticks}")
     output.check_json_out(args.out)
     if args.motions is not None and args.motions.exists() and not args.motions.is_dir():
         raise ParameterError(f"--motions {args.motions}: not a directory")

@@ -31,7 +31,6 @@ from felis.servos import SERVOS, servo_model
 from felis.spec import RobotSpec, load_spec
 
 VOLTS_MAX = {"XL330": 6.0, "XC330": 6.0}  # the families' maximum supply (ROBOTIS e-Manual: 3.7–6.0 V)
-PAW_TAU_S = 0.004  # the model's
 
 
 @dataclass(frozen=True)
