@@ -208,6 +208,11 @@ def test_delay_past_the_timeout_is_a_timeout(cat_bus, bus):
 
 
 # --------------------------------------------------------------------------------- DynamixelRobot
+# Wall-clock runs about another fault keep the Bus Watchdog armed at a time a loaded 2-core machine cannot
+# exceed by accident (the shipped 0.1 s deadman did trip first once on CI, in an IMU test).
+LOADED_MACHINE_WATCHDOG_S = 1.0
+
+
 def _robot(vb, **kw) -> DynamixelRobot:
     return DynamixelRobot(load_spec("cat"), vb.port, BAUD, **kw)
 
@@ -250,7 +255,7 @@ def test_robot_connect_names_missing_servos(cat_bus):
 
 
 def test_removed_servo_is_stale_then_the_watchdog_disarms(cat_bus):
-    with _robot(cat_bus) as robot:
+    with _robot(cat_bus, bus_watchdog_s=LOADED_MACHINE_WATCHDOG_S) as robot:
         from felis.controllers import PoseController
 
         ticks = iter(range(1, 10_000))
@@ -272,7 +277,7 @@ def test_removed_servo_is_stale_then_the_watchdog_disarms(cat_bus):
 def test_hardware_error_stops_the_run_and_names_the_joint(cat_bus):
     from felis.controllers import PoseController
 
-    with _robot(cat_bus, hardware_poll_s=0.0) as robot:
+    with _robot(cat_bus, hardware_poll_s=0.0, bus_watchdog_s=LOADED_MACHINE_WATCHDOG_S) as robot:
 
         ticks = iter(range(1, 10_000))
 
@@ -291,7 +296,7 @@ def test_hardware_error_stops_the_run_and_names_the_joint(cat_bus):
 def test_closed_port_ends_the_run_without_a_crash(cat_bus):
     from felis.controllers import PoseController
 
-    with _robot(cat_bus) as robot:
+    with _robot(cat_bus, bus_watchdog_s=LOADED_MACHINE_WATCHDOG_S) as robot:
 
         ticks = iter(range(1, 10_000))
 
