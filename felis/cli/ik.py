@@ -21,7 +21,7 @@ DEFAULT_OUT = Path("runs/train-ik/ik.npz")
 
 
 def _defaults():
-    from felis.learning.ik.run import IkTrainConfig  # late: the training package (torch), for its defaults
+    from felis.learning.ik.config import IkTrainConfig  # late: its settings only (not torch)
 
     return IkTrainConfig()
 

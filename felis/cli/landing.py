@@ -22,7 +22,7 @@ DEFAULT_TRAIN_OUT = Path("runs/train-landing/landing.npz")
 
 def register_train(train_sub) -> None:
     """Add ``felis train landing``."""
-    from felis.learning.landing.train import TrainConfig  # late: the training package, for its defaults
+    from felis.learning.landing.config import TrainConfig  # late: its settings only
 
     d = TrainConfig()
     t = train_sub.add_parser("landing", help="evolve the landing nets (seed 000): the simple stage per training "
