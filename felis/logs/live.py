@@ -18,6 +18,7 @@ import foxglove
 from foxglove.websocket import ServerListener
 
 from felis.errors import ParameterError
+from felis.logs import sdk
 
 DEFAULT_HOST = "127.0.0.1"
 
@@ -66,6 +67,7 @@ class LiveView:
                                                 server_listener=_Latch(self))
         except (OSError, RuntimeError, ValueError) as e:
             raise ParameterError(f"--live {host}:{port}: cannot serve: {e}") from None
+        sdk.quiet()  # else closing a channel while a viewer subscribes can deadlock (`felis.logs.sdk`)
         self.host, self.port = host, self.server.port
 
     @property

@@ -14,6 +14,7 @@ from foxglove.messages import Timestamp
 
 from felis.errors import LogError
 from felis.files import prepare_parent
+from felis.logs import sdk
 from felis.logs.schemas import _text, jsonable, schema_of
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -75,6 +76,7 @@ class McapLog:
                                                   writer_options=options)
             except (OSError, RuntimeError, ValueError) as e:
                 raise error(f"cannot write {what} {self.path}: {getattr(e, 'strerror', None) or e}") from None
+            sdk.quiet()  # `felis.logs.sdk`: no SDK log records under its locks
             self._contexts.append(ctx)
         if live is not None:
             self._contexts.append(live.context)

@@ -196,3 +196,63 @@ def test_eval_live_needs_one_episode(capsys):
 
     assert main(["eval", "balance", "--pushes", "random:2", "--live", "0"]) != 0
     assert "--live shows one episode, and 2 pushes are given" in capsys.readouterr().err
+
+
+_HAMMER = r"""
+import asyncio, json, sys, websockets
+async def main(url):
+    async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None) as ws:
+        print("connected", flush=True)
+        k = 1
+        while True:  # subscriptions to channels that do not exist: the SDK logs an error for each, under a lock
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": k + i, "channelId": 10_000_000 + k + i} for i in range(50)]}))
+            k += 50
+            try:
+                await asyncio.wait_for(ws.recv(), 0.001)
+            except asyncio.TimeoutError:
+                pass
+asyncio.run(main(sys.argv[1]))
+"""
+
+_RUNS = r"""
+import subprocess, sys, time
+from felis.logs.live import LiveView
+from felis.logs.runlog import RunLog
+from felis.spec import load_spec
+spec = load_spec("cat")
+with LiveView(("127.0.0.1", 0)) as view:
+    client = subprocess.Popen([sys.executable, "-c", sys.argv[1], view.url], stdout=subprocess.PIPE,
+                              stderr=subprocess.DEVNULL, text=True)
+    assert client.stdout.readline().strip() == "connected"
+    t0, n = time.perf_counter(), 0
+    while time.perf_counter() - t0 < float(sys.argv[2]):
+        RunLog(None, spec, live=view).close()  # channels made and closed while the viewer sends
+        n += 1
+    client.kill()
+print("runs", n)
+"""
+
+
+@pytest.mark.parametrize("level", [None, pytest.param("error", marks=pytest.mark.slow)])
+def test_closing_channels_while_a_viewer_subscribes_never_deadlocks(level):
+    """The SDK's server thread logs (Python, the GIL) while it holds a client's lock; a run closing its channels
+    holds the GIL and waits for that lock (`felis.logs.sdk`). A viewer subscribing to unknown channels hits that
+    path thousands of times a second; 4 s of logs opened and closed must all finish. The control (slow): with
+    the SDK's records forwarded again (``FOXGLOVE_LOG_LEVEL=error``) the same script hangs."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "FOXGLOVE_LOG_LEVEL"}
+    if level is not None:
+        env["FOXGLOVE_LOG_LEVEL"] = level
+    try:
+        r = subprocess.run([sys.executable, "-c", _RUNS, _HAMMER, "4"], capture_output=True, text=True, timeout=60,
+                           env=env)
+    except subprocess.TimeoutExpired:
+        assert level is not None, "closing a live view's channels deadlocked"
+        return
+    assert level is None, "the control did not deadlock: this test no longer provokes the SDK's lock order"
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert int(r.stdout.split()[-1]) > 100
