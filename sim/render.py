@@ -5,9 +5,10 @@ frame time (``fps``), from the model's ``track`` camera when there is one. Frame
 they come to a temporary file next to the target, renamed into place by `close` (a run that fails
 half-way leaves no partial video). A ``.png`` target is a film strip: ``strip`` frames evenly
 spaced over the run, side by side. ``markers`` (n, 3) world points are drawn as small orange spheres
-in every frame (e.g. a tracking controller's target path). Frames are drawn without shadows and without the
-floor's reflection: in software OpenGL (a machine without a GPU, ``MUJOCO_GL=egl``) they cost 3–4× the time of
-the rest of a frame (a 640×480 frame of the cat: 216 against 55 ms on 2 cores).
+in every frame (e.g. a tracking controller's target path); ``start`` skips the first seconds of a run.
+Frames are drawn without shadows and without the floor's reflection: in software OpenGL (a machine without a
+GPU, ``MUJOCO_GL=egl``) they cost 3–4× the time of the rest of a frame (a 640×480 frame of the cat: 216 against
+55 ms on 2 cores).
 
 Needs an OpenGL context: on a machine without a display set ``MUJOCO_GL=egl`` (the CLI does).
 """
@@ -41,7 +42,8 @@ class VideoRecorder:
     """Renders frames during a run; ``close()`` writes the file."""
 
     def __init__(self, robot: MujocoRobot, path: str | Path, fps: float = 30.0, width: int = 640,
-                 height: int = 480, camera: str = "track", strip: int = 6, markers: np.ndarray | None = None):
+                 height: int = 480, camera: str = "track", strip: int = 6, markers: np.ndarray | None = None,
+                 start: float = 0.0):
         self.path = check_video_path(path)
         if not 1 <= fps <= 120:
             raise ParameterError(f"fps must be within 1…120, got {fps}")
@@ -56,6 +58,7 @@ class VideoRecorder:
         self.markers = None if markers is None else np.asarray(markers, dtype=float).reshape(-1, 3)
         self.frames: list[np.ndarray] = []  # kept only for PNG strips
         self.count = 0
+        self.start = max(0.0, float(start))  # the first frame this long into the run (a demo skips a still start)
         self._next = None
         prepare_parent(self.path, "video")
         self._tmp = self.path.with_name(f".{self.path.stem}.part{self.path.suffix}")
@@ -71,7 +74,7 @@ class VideoRecorder:
             self._writer = imageio.get_writer(self._tmp, **kwargs)
 
     def reset(self, spec, state: State) -> None:
-        self._next = state.t
+        self._next = state.t + self.start
 
     def capture(self) -> np.ndarray:
         self.renderer.update_scene(self.robot.data, camera=self.camera)
@@ -90,7 +93,7 @@ class VideoRecorder:
 
     def __call__(self, state: State, command: Command) -> None:
         if self._next is None:
-            self._next = state.t
+            self._next = state.t + self.start
         if state.t + 1e-9 < self._next:
             return
         self._next += 1.0 / self.fps

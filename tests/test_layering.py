@@ -189,6 +189,7 @@ def test_the_layering_rules_catch_what_they_should():
 _PROBE = r"""
 import json, os, sys
 mods, HEAVY = json.loads(sys.argv[1]), tuple(json.loads(sys.argv[2]))
+import numpy  # every layer may use it (not in HEAVY): loaded once here, each fork need not
 out = {}
 for m in mods:
     r, w = os.pipe()

@@ -82,7 +82,7 @@ def _episodes(run_dir: Path, no_video: bool):
         eight = trajectory_from("figure8")
         return dict(robot="arm", controller="arm-track", duration=run_time(eight, hold=ARM_HOLD_S),
                     controller_options={"trajectory": eight, "hold": ARM_HOLD_S}, log=run_dir / "arm_figure8.mcap",
-                    video=None if no_video else run_dir / "arm_figure8.mp4",
+                    video=None if no_video else run_dir / "arm_figure8.mp4", video_from=ARM_HOLD_S,
                     plot=run_dir / "arm_figure8.png", meta={"demo": True})
 
     return (
@@ -109,5 +109,6 @@ def _episodes(run_dir: Path, no_video: bool):
                       plot=run_dir / "hard_drop.png", meta={"demo": True})),
         ("[bold]felis demo 4/5[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "
          "Posture Estimator → mean filter → exact refinement (MuJoCo; servos with PID 800/100/100, targets taken "
-         "ahead by the servos' lag, 6 s at the first point while the I terms take up gravity)", arm),
+         "ahead by the servos' lag, 6 s at the first point while the I terms take up gravity; the video starts "
+         "with the eight)", arm),
     )

@@ -57,6 +57,7 @@ class Episode:
     video: Path | None = None
     plot: Path | None = None
     fps: float = 30.0
+    video_from: float = 0.0  # seconds into the run of the video's first frame
     size: tuple[int, int] = (640, 480)
     clock: str = "sim"
     rate_hz: float | None = None  # None: the description's rate
@@ -272,7 +273,7 @@ class _Sim:
         from felis.sim.render import VideoRecorder  # late: MuJoCo rendering
 
         self.video = VideoRecorder(self.robot, ep.video, fps=ep.fps, width=ep.size[0], height=ep.size[1],
-                                   markers=getattr(self.controller, "markers", None))
+                                   markers=getattr(self.controller, "markers", None), start=ep.video_from)
         return [self.video]
 
     def verdict(self):
