@@ -13,9 +13,6 @@ import contextlib
 import math
 from pathlib import Path
 
-from felis.drivers.dynamixel.bus import SDK_BAUDS
-from felis.drivers.dynamixel.trace import PacketTrace
-from felis.drivers.ports import open_ports
 from felis.errors import UsageError
 
 
@@ -71,6 +68,7 @@ def one_id(text: str) -> int:
 
 def baud_rate(text: str) -> int:
     """A baud rate the SDK supports: ``1000000``, ``1M``, ``57.6k``, ``57_600``."""
+    from felis.drivers.dynamixel.bus import SDK_BAUDS
     t = text.lower().replace("_", "")
     mult = 1
     if t.endswith("m"):
@@ -150,6 +148,8 @@ def open_bus(args, *, sim: bool = False, retries: int = 1, quiet_check: bool = T
     """`felis.drivers.ports.open_ports` for ``--port``/``--baud``/``--robot`` (default cat) and, where the
     command has them, ``--imu-port`` and ``--trace``: a context manager giving `felis.drivers.ports.Ports` with
     the bus open; the trace is flushed and closed after the bus, whichever way the block is left."""
+    from felis.drivers.dynamixel.trace import PacketTrace
+    from felis.drivers.ports import open_ports
     path = getattr(args, "trace", None)
     with contextlib.ExitStack() as stack:
         trace = stack.enter_context(PacketTrace(path)) if path is not None else None

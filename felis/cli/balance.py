@@ -18,7 +18,6 @@ from pathlib import Path
 
 from felis.cli import output
 from felis.cli.args import live_option
-from felis.drivers import ports
 from felis.errors import ParameterError
 
 DEFAULT_TRAIN_OUT = Path("runs/train-balance/balance_selector.npz")
@@ -76,6 +75,7 @@ def _reaction(text: str) -> str:
 
 def cmd_eval_balance(args) -> int:
     from felis.cli.live import check_one, live_push
+    from felis.drivers import ports
     from felis.learning.balance.evaluate import run_push_virtual, run_pushes, summarise
     from felis.scenarios.push import pushes_from
 

@@ -11,8 +11,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from rich.table import Table
-
 from felis.cli import output
 from felis.cli.args import baud_rate, json_option, open_bus, trace_option
 from felis.errors import CalibrationError, ParameterError
@@ -62,6 +60,7 @@ def _bus(args):
 
 
 def _diff_table(diffs, title: str, left: str, right: str):
+    from rich.table import Table
     t = Table(title=title)
     for col in ("joint", "ID", "item", left, right):
         t.add_column(col)
@@ -133,6 +132,8 @@ def _calibrate_imu(args, spec, path: Path, op, port: str | None) -> dict:
 
 # ----------------------------------------------------------------------------- calibration …
 def cmd_cal_show(args) -> int:
+    from rich.table import Table
+
     from felis.calib.calfile import horn_of_tick, load, q_of_tick
 
     spec = _spec(args)

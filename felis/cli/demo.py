@@ -12,8 +12,6 @@ from pathlib import Path
 
 from felis.cli import output
 from felis.cli.results import episode, exit_code, print_result
-from felis.controllers.arm_track import run_time, trajectory_from
-from felis.drivers.ports import VIRTUAL
 from felis.errors import ParameterError
 from felis.shutdown import EXIT_INTERRUPTED
 
@@ -78,6 +76,8 @@ def cmd_demo(args) -> int:
 def _episodes(run_dir: Path, no_video: bool):
     """The tour's first four runs: (header, a function giving their `episode` keywords when the run comes)."""
 
+    from felis.controllers.arm_track import run_time, trajectory_from
+    from felis.drivers.ports import VIRTUAL
     def arm() -> dict:
         eight = trajectory_from("figure8")
         return dict(robot="arm", controller="arm-track", duration=run_time(eight, hold=ARM_HOLD_S),

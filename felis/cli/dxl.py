@@ -16,10 +16,7 @@ import sys
 
 from felis.cli import output
 from felis.cli.args import baud_rate, bus_args, dry_run, id_list, json_option, open_bus, servo_command
-from felis.drivers.dynamixel.bus import SDK_BAUDS
-from felis.drivers.dynamixel.controltable import unsupported
 from felis.errors import CommError, ParameterError
-from felis.servos import hardware_error_names
 
 
 def register(sub) -> None:
@@ -98,6 +95,7 @@ def _likely(p) -> bool:
 
 
 def cmd_scan(args) -> int:
+    from felis.drivers.dynamixel.bus import SDK_BAUDS
     bauds = args.bauds or list(SDK_BAUDS)
     with open_bus(args) as ports:
         bus = ports.bus
@@ -134,6 +132,7 @@ INFO_ITEMS = ("model_number", "firmware_version", "id", "baud_rate", "return_del
 
 def _table(bus, dxl_id: int):
     """The servo's control table; a model felis has no table for is one line naming its Model Number."""
+    from felis.drivers.dynamixel.controltable import unsupported
     try:
         return bus.table(dxl_id)
     except ParameterError:
@@ -141,6 +140,7 @@ def _table(bus, dxl_id: int):
 
 
 def cmd_info(args) -> int:
+    from felis.servos import hardware_error_names
     with open_bus(args) as ports:
         bus = ports.bus
         found = bus.ping(args.id)

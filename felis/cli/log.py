@@ -8,9 +8,6 @@ from pathlib import Path
 
 from felis.cli import output
 from felis.cli.args import group
-from felis.logs.export import export_csv
-from felis.logs.plot import plot_log
-from felis.logs.reader import log_info
 
 
 def register(sub) -> None:
@@ -31,6 +28,7 @@ def register(sub) -> None:
 
 
 def cmd_log_info(args) -> int:
+    from felis.logs.reader import log_info
     info = log_info(args.file)
     if args.json:
         output.print_json(info)
@@ -42,12 +40,14 @@ def cmd_log_info(args) -> int:
 
 
 def cmd_log_plot(args) -> int:
+    from felis.logs.plot import plot_log
     out = plot_log(args.file, args.out)
     print(f"plot: {out}")
     return 0
 
 
 def cmd_log_export(args) -> int:
+    from felis.logs.export import export_csv
     for path in export_csv(args.file, args.csv):
         print(f"csv: {path}")
     return 0

@@ -11,17 +11,10 @@ import sys
 import time
 from pathlib import Path
 
-from rich.live import Live
-from rich.table import Table
-
 from felis.cli import output
 from felis.cli.args import bus_args, id_list, live_option, open_bus
 from felis.errors import CommError, ParameterError
-from felis.files import check_target, prepare_parent
-from felis.logs.monitorlog import MonitorExport
-from felis.servos import hardware_error_names
 from felis.shutdown import EXIT_INTERRUPTED
-from felis.spec import load_spec
 
 MONITOR_BLOCK = (126, 21)  # present current … present temperature (126..146)
 
@@ -41,6 +34,7 @@ def register(sub) -> None:
 
 def monitor_rows(bus, ids: list[int]) -> list[dict]:
     """One sync read of Present Current … Present Temperature for ``ids``, in SI units."""
+    from felis.servos import hardware_error_names
     res = bus.sync_read(ids, *MONITOR_BLOCK, fast=False)
     rows = []
     for i in ids:
@@ -69,6 +63,7 @@ def monitor_rows(bus, ids: list[int]) -> list[dict]:
 def _monitor_ids(args, bus) -> list[int]:
     """The servos to watch: ``--id``, else the ``--robot``'s (models from its description: a missing servo
     is a row saying so, not a refusal to start), else every servo a broadcast ping finds."""
+    from felis.spec import load_spec
     if args.robot:
         spec = load_spec(args.robot)
         for j in spec.joints:
@@ -86,6 +81,11 @@ def _monitor_ids(args, bus) -> list[int]:
 
 
 def cmd_monitor(args) -> int:
+    from rich.live import Live
+
+    from felis.files import check_target, prepare_parent
+    from felis.logs.monitorlog import MonitorExport
+    from felis.spec import load_spec
     if not 1 <= args.rate <= 1000:  # NaN fails too
         raise ParameterError(f"--rate must be 1…1000 Hz, got {args.rate}")
     if args.duration is not None and not 0 < args.duration <= 1e6:
@@ -162,6 +162,7 @@ def cmd_monitor(args) -> int:
 
 
 def _table(rows: list[dict], rate: float):
+    from rich.table import Table
     tab = Table(title=f"felis monitor — {rate:.0f} Hz (Ctrl-C to stop)")
     for col in ("ID", "position (rad)", "velocity (rad/s)", "current/load", "temp (°C)", "voltage (V)", "errors"):
         tab.add_column(col, justify="right")

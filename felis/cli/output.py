@@ -12,12 +12,14 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from typing import TYPE_CHECKING
 
 from felis.errors import ParameterError
 from felis.files import check_target, write_atomic
+
+if TYPE_CHECKING:  # rich loads when a command prints
+    from rich.console import Console
+    from rich.progress import Progress
 
 JSON_INDENT = 2
 EXIT_ERROR, EXIT_USAGE = 1, 2  # exit codes besides 0 and felis.shutdown.EXIT_INTERRUPTED (130)
@@ -26,6 +28,7 @@ EXIT_ERROR, EXIT_USAGE = 1, 2  # exit codes besides 0 and felis.shutdown.EXIT_IN
 # --------------------------------------------------------------------------------- text and JSON
 def console(width: int | None = None) -> Console:
     """The console commands print through: no automatic highlighting, long lines not wrapped."""
+    from rich.console import Console
     if width is None:
         return Console(highlight=False, soft_wrap=True)
     return Console(highlight=False, soft_wrap=True, width=width)
@@ -68,6 +71,7 @@ def bar(*, quiet: bool, counts: bool = True, field: str | None = None, remaining
     """A rich progress display: description, bar, [done/total], [a task field], elapsed, [remaining].
 
     ``quiet`` turns it off (``--json``, or no terminal to draw on)."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
     columns = [TextColumn("{task.description}"), BarColumn()]
     if counts:
         columns.append(TextColumn("{task.completed}/{task.total}"))

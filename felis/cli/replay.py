@@ -20,21 +20,19 @@ from __future__ import annotations
 import contextlib
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from felis.cli import output
+
+if TYPE_CHECKING:  # annotations only: the modules load when the command runs
+    from felis.controllers.replay import Commands, ReplayController
+    from felis.logs.compare import Comparison
+    from felis.logs.reader import LogData
+    from felis.spec import RobotSpec
 from felis.cli.args import backend_args, finite, trace_option
-from felis.cli.episode import Episode, EpisodeResult, _Dxl, _Sim
-from felis.cli.results import exit_code, print_result
-from felis.controllers.replay import Commands, ReplayController, approach_time
 from felis.errors import ParameterError, UnknownRobotError
-from felis.logs.compare import Comparison, position_error
-from felis.logs.reader import LogData, read_log
-from felis.logs.runlog import RunLog
-from felis.loop import first_read, run_loop
-from felis.safety import SafetyConfig
-from felis.spec import RobotSpec, load_spec
 
 MAX_SPEED = 10.0  # in simulation; on servos at most 1 (the recorded speed)
 MAX_APPROACH_S = 60.0
@@ -90,6 +88,7 @@ def check_options(args, backend: str) -> Path:
 def robot_of(data: LogData, robot: str | None) -> RobotSpec:
     """The description to replay ``data`` on: ``robot`` (checked against the log's) or the log's own; the
     log's joints must be the description's, in order."""
+    from felis.spec import load_spec
     logged = data.meta.get("robot")
     if robot is None:
         if not logged:
@@ -113,6 +112,7 @@ def robot_of(data: LogData, robot: str | None) -> RobotSpec:
 
 def commands_of(data: LogData) -> Commands:
     """The log's sent commands; refused when it has none."""
+    from felis.controllers.replay import Commands
     if len(data.cmd_t) == 0:
         kind = "a `felis monitor` recording: it holds what was measured, " if data.meta.get("kind") == "monitor" else ""
         raise ParameterError(f"{data.path} has no sent commands (/joint_commands) to replay ({kind}nothing was "
@@ -166,6 +166,13 @@ class Trace:
 
 
 def cmd_replay(args) -> int:
+    from felis.cli.episode import Episode, EpisodeResult, _Dxl, _Sim
+    from felis.cli.results import exit_code, print_result
+    from felis.controllers.replay import ReplayController, approach_time
+    from felis.logs.reader import read_log
+    from felis.logs.runlog import RunLog
+    from felis.loop import first_read, run_loop
+    from felis.safety import SafetyConfig
     backend_name = "dxl" if args.backend in ("dxl", "dynamixel") else args.backend
     log_path = check_options(args, backend_name)
     data = read_log(args.file)  # LogError: missing, not MCAP, not felis's, felis 0.2's form (what to do)
@@ -232,6 +239,7 @@ def cmd_replay(args) -> int:
 def compare(data: LogData, spec: RobotSpec, controller: ReplayController, trace: Trace) -> Comparison:
     """The replay's measured positions against the original's at the log times they replay (after the
     approach, within the window)."""
+    from felis.logs.compare import position_error
     t = np.asarray(trace.t, dtype=float)
     q = np.asarray(trace.q, dtype=float).reshape(len(t), spec.n)
     tau = controller.log_time(t - controller.t0)

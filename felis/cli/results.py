@@ -8,12 +8,12 @@ on standard error), 130 when a signal did.
 from __future__ import annotations
 
 from felis.cli import output
-from felis.cli.episode import Episode, run_episode
 from felis.shutdown import EXIT_INTERRUPTED
 
 
 def episode(args, **kw):
     """Run `Episode(**kw)`; a progress bar over its time unless the command prints JSON."""
+    from felis.cli.episode import Episode, run_episode
     if getattr(args, "live", None) is not None:
         kw.setdefault("live", args.live)
         kw.setdefault("on_live", output.live)

@@ -10,9 +10,7 @@ from pathlib import Path
 
 from felis.cli.args import backend_args, finite, live_option, trace_option
 from felis.cli.results import episode, report
-from felis.controllers.arm_track import run_time, trajectory_from
 from felis.errors import ParameterError
-from felis.rotations import G
 
 
 def register(sub) -> None:
@@ -69,6 +67,8 @@ def drop_args(args) -> tuple[float, float, float, float] | None:
 
 
 def cmd_run(args) -> int:
+    from felis.controllers.arm_track import run_time, trajectory_from
+    from felis.rotations import G
     backend = "dxl" if args.backend in ("dxl", "dynamixel") else args.backend
     if backend == "sim" and args.port is not None:
         raise ParameterError("--port needs --backend dxl")

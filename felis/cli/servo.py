@@ -12,10 +12,7 @@ import time
 
 from felis.cli import output
 from felis.cli.args import baud_rate, bus_args, dry_run, id_list, one_id, open_bus, servo_command
-from felis.drivers.dynamixel.bus import CorruptReplyError, NoReplyError, baud_code
-from felis.drivers.dynamixel.protocol import BROADCAST_ID
 from felis.errors import CommError, ParameterError
-from felis.spec import load_spec
 
 
 def register(sub) -> None:
@@ -45,6 +42,7 @@ def cmd_torque(args) -> int:
     none answering is a failure (torque state unknown), and so is a servo still on. ``on`` needs ``--id``;
     each servo's Goal Position is set to its Present Position first (no jump), then torque on, read back.
     """
+    from felis.drivers.dynamixel.protocol import BROADCAST_ID
     on = args.state == "on"
     with open_bus(args, quiet_check=on) as ports:  # the emergency stop never waits
         bus = ports.bus
@@ -83,6 +81,7 @@ def cmd_torque(args) -> int:
 
 def _known_ids(args, bus) -> list[int]:
     """The servos an emergency stop checks: the --robot's, else whatever answers a broadcast ping."""
+    from felis.spec import load_spec
     if getattr(args, "robot", None):
         return [j.servo_id for j in load_spec(args.robot).joints]
     found = sorted({f.id for f in bus.scan(bauds=[bus.baud])})
@@ -159,6 +158,7 @@ def cmd_set_id(args) -> int:
 
 
 def cmd_set_baud(args) -> int:
+    from felis.drivers.dynamixel.bus import baud_code
     with open_bus(args, retries=3) as ports:
         bus = ports.bus
         table = bus.table(args.id)
@@ -192,6 +192,7 @@ def _write_then_verify(bus, write, new_answers, old_answers, what: str) -> str:
     while the write took. So a write that got no reply is judged by pinging: at the new address it
     changed (returns a note saying the reply was lost), at the old one it did not (CommError), at
     neither the outcome is unknown (CommError)."""
+    from felis.drivers.dynamixel.bus import CorruptReplyError, NoReplyError
     try:
         write()
         return ""

@@ -10,10 +10,7 @@ from felis.cli.args import finite, group, json_option, live_option, size
 from felis.cli.doctor import has_display
 from felis.cli.results import episode, report
 from felis.cli.run import drop_args
-from felis.controllers import make_controller
 from felis.errors import FelisError
-from felis.loop import run_loop
-from felis.spec import load_spec
 
 
 def register(sub) -> None:
@@ -55,6 +52,7 @@ def register(sub) -> None:
 def default_controller(args) -> str:
     """``--controller`` if given; else the landing skill for a cat that is dropped (the landing nets drive
     the cat's joints), else ``stand``."""
+    from felis.spec import load_spec
     if args.controller:
         return args.controller
     from felis.learning.landing.policy import JOINTS
@@ -77,6 +75,9 @@ def cmd_sim_render(args) -> int:
 
 
 def cmd_sim_view(args) -> int:
+    from felis.controllers import make_controller
+    from felis.loop import run_loop
+    from felis.spec import load_spec
     if not has_display():
         raise FelisError("no display here (DISPLAY/WAYLAND_DISPLAY unset): the viewer cannot open; "
                          "use `felis sim render --out FILE.mp4` instead")

@@ -22,11 +22,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from rich.table import Table
-
 from felis.cli import output
-from felis.drivers import ports
-from felis.drivers.dynamixel.robot import DynamixelRobot
 from felis.errors import ParameterError, SysidError
 
 
@@ -66,6 +62,7 @@ def _joints(spec, names: list[str] | None) -> list[str] | None:
 def _confirm(args, spec, joints, exc, rate) -> None:
     """Tell the operator what will move; ask unless --yes (real servos only)."""
     from felis.calib.sysid import amplitudes, hold_pose
+    from felis.drivers import ports
 
     hold = hold_pose(spec)
     amp = max(amplitudes(spec, j, exc, hold)[1] for j in joints)
@@ -88,6 +85,8 @@ def _confirm(args, spec, joints, exc, rate) -> None:
 
 def _record(args, spec, joints, exc, bar):
     from felis.calib.sysid import record
+    from felis.drivers import ports
+    from felis.drivers.dynamixel.robot import DynamixelRobot
 
     servo = None
     if args.virtual_servo_params:
@@ -162,6 +161,7 @@ def cmd_sysid(args) -> int:
 
 
 def _print_table(result, info, files) -> None:
+    from rich.table import Table
     console = output.console()
     if not console.is_terminal:
         console = output.console(width=160)

@@ -17,20 +17,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from rich.table import Table
-
 from felis.cli import output
 from felis.cli.args import bus_args, dry_run, one_id, open_bus
 from felis.drivers.dynamixel.factoryreset import KEEP, factory_reset, where_after
-from felis.drivers.dynamixel.tabledump import (
-    KEPT,
-    apply_plan,
-    kept_differences,
-    load_dump,
-    read_table,
-    restorable,
-    restore_plan,
-)
 from felis.errors import ParameterError
 
 
@@ -81,6 +70,9 @@ def _torque_on(dump) -> bool:
 
 # ----------------------------------------------------------------------------- dump
 def cmd_dump(args) -> int:
+    from rich.table import Table
+
+    from felis.drivers.dynamixel.tabledump import read_table
     output.check_json_out(args.out)
     with open_bus(args) as ports:
         dump = read_table(ports.bus, args.id)
@@ -104,6 +96,7 @@ def cmd_restore(args) -> int:
     """Restore a dump (module doc). With torque on, EEPROM items cannot be written: without ``--yes`` the
     restore is refused (nothing written); with ``--yes`` the RAM items are written, the EEPROM ones are
     reported as left, and the exit code is 1 (the servo is not in the dumped state)."""
+    from felis.drivers.dynamixel.tabledump import apply_plan, kept_differences, load_dump, read_table, restore_plan
     dump = load_dump(args.file)
     dxl_id = dump.id if args.id is None else args.id
     with open_bus(args) as ports:
@@ -156,6 +149,9 @@ def cmd_restore(args) -> int:
 
 def _show_diff(args, dxl_id: int, plan, kept, torque: bool) -> None:
     """The differences, before anything is written (on standard error with --json, so stdout stays JSON)."""
+    from rich.table import Table
+
+    from felis.drivers.dynamixel.tabledump import KEPT
     if args.json:
         return
     t = Table(title=f"servo {dxl_id}: current → dump")
@@ -176,6 +172,7 @@ def _show_diff(args, dxl_id: int, plan, kept, torque: bool) -> None:
 
 # ----------------------------------------------------------------------------- factory reset
 def cmd_factory_reset(args) -> int:
+    from felis.drivers.dynamixel.tabledump import read_table, restorable
     with open_bus(args, retries=3) as ports:
         bus = ports.bus
         found = bus.ping(args.id)

@@ -23,9 +23,6 @@ from felis.cli import output
 from felis.cli.args import baud_rate, finite, live_option, trace_option
 from felis.controllers.teleop import RAMP_S, JogController, TeleopController, parse_map, resolve_map
 from felis.errors import ParameterError
-from felis.files import check_target
-from felis.loop import run_loop
-from felis.spec import load_spec
 
 LEADER = "arm-leader"  # the default leader description
 KEYS_HELP = ("keys: 1-9 select a joint, x/y/z a tool axis (through the learned IK); + - or the arrows move it by a "
@@ -70,6 +67,7 @@ def register(sub) -> None:
 # ------------------------------------------------------------------------------------------------ checks
 def _check(args) -> None:
     """Every option on its own, before anything is loaded or opened."""
+    from felis.files import check_target
     if args.backend == "sim" and args.port is not None:
         raise ParameterError("--port is the follower's bus: it needs --backend dxl")
     if args.backend == "sim" and (args.calibration is not None or args.robot_id is not None):
@@ -114,6 +112,7 @@ def _calibration(path: Path | None, spec):
 # ------------------------------------------------------------------------------------------------ the command
 def cmd_teleop(args) -> int:
     from felis.cli.results import exit_code
+    from felis.spec import load_spec
 
     _check(args)
     spec = load_spec(args.robot)
@@ -171,6 +170,7 @@ def _run(args, spec, leader_spec, mapping, leader_cal, follower_cal):
     from felis.cli.episode import EpisodeResult
     from felis.drivers.dynamixel.leader import LeaderArm
     from felis.logs.runlog import RunLog
+    from felis.loop import run_loop
 
     files: dict[str, str] = {}
     warnings: list[str] = []
