@@ -23,6 +23,7 @@ The messages (package ``felis``, proto3; every field written, zeros included; Na
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Sequence
 
@@ -89,8 +90,14 @@ TIMING = FelisMessage("Timing", (("control_ms", "double"),))
 
 
 def contacts_message(feet: Sequence[str]) -> FelisMessage:
-    """``felis.Contacts`` for these feet: one boolean field per foot, by name."""
-    return FelisMessage("Contacts", tuple((str(f), "bool") for f in feet))
+    """``felis.Contacts`` for these feet: one boolean field per foot, by name (built once per set of feet: a log
+    opened per episode reuses it)."""
+    return _contacts(tuple(str(f) for f in feet))
+
+
+@functools.lru_cache(maxsize=32)
+def _contacts(feet: tuple[str, ...]) -> FelisMessage:
+    return FelisMessage("Contacts", tuple((f, "bool") for f in feet))
 
 
 def as_dict(msg) -> dict:

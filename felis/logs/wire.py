@@ -24,6 +24,7 @@ Field numbers (from the SDK's schemas, ``foxglove.messages.X.get_schema()``)::
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 
 import numpy as np
@@ -100,7 +101,9 @@ class _Msg:
 
 class _Template:
     """A compiled message: the bytes, where the doubles start (one offset each), where the timestamp bodies and the
-    booleans go. Compiled once per layout (`_compiled`); each encoder fills its own copy of the bytes (`copy`).
+    booleans go. Compiled once per layout (`_compiled`) and shared by every encoder of that layout; the scratch
+    buffers are kept per thread and per power of two of the batch size, so a log opened per episode finds them
+    ready (building one per batch size was a sixth of a short episode's logging).
 
     Filling writes whole values, not bytes: the buffer is seen through a window view with a one-byte stride
     (``dtype`` u8 for the doubles' bits, V<size> for the timestamps), so one fancy-index assignment puts every
@@ -120,19 +123,25 @@ class _Template:
         self.bools = np.array(slots["b"], dtype=np.intp)
         self.stamp_size = stamp_size
         self.n_stamps = len(slots["t"])
-        self._many: dict[int, tuple] = {}  # K → (scratch for K messages, its windows, the slots of K messages)
+        # (thread, K) → (scratch for K messages, its windows, the slots of K messages)
+        self._many: dict[tuple[int, int], tuple] = {}
 
     def _scratch(self, k: int) -> tuple:
-        many = self._many.get(k)
+        """Scratch for up to the next power of two ≥ ``k`` messages (a handful of sizes, whatever batches come)."""
+        cap = 1 << max(0, (k - 1).bit_length())
+        key = (threading.get_ident(), cap)
+        many = self._many.get(key)
         if many is None:
+            if len(self._many) >= 256:  # many threads: keep it bounded (a thread's own stay valid)
+                self._many = {}
             n = len(self.base)
-            off = (np.arange(k, dtype=np.intp) * n)[:, None]
-            buf = np.tile(self.base, k)
+            off = (np.arange(cap, dtype=np.intp) * n)[:, None]
+            buf = np.tile(self.base, cap)
             u8 = np.ndarray(shape=(max(len(buf) - 7, 0),), dtype="<u8", buffer=buf, strides=(1,))
             size = max(self.stamp_size, 1)
             ts = np.ndarray(shape=(max(len(buf) - size + 1, 0),), dtype=f"V{size}", buffer=buf, strides=(1,))
-            many = self._many[k] = (buf, u8, ts, (self.doubles[None, :] + off).reshape(-1),
-                                    (self.stamps[None, :] + off).reshape(-1), (self.bools[None, :] + off).reshape(-1))
+            many = self._many[key] = (buf, u8, ts, (self.doubles[None, :] + off).reshape(-1),
+                                      (self.stamps[None, :] + off).reshape(-1), (self.bools[None, :] + off).reshape(-1))
         return many
 
     def fill(self, values: np.ndarray, stamp: bytes) -> bytes:
@@ -145,23 +154,16 @@ class _Template:
         the K timestamp bodies, each of this template's size (None: a template without a timestamp), ``flags``
         (K, booleans) for a template with boolean fields."""
         k = len(values)
-        buf, u8, ts, dbl, tsi, bi = self._scratch(k)
-        if len(dbl):
-            u8[dbl] = values.view("<u8").reshape(-1)
-        if len(bi):
-            buf[bi] = np.asarray(flags, dtype=bool).reshape(-1)
+        buf, u8, ts, dbl, tsi, bi = self._scratch(k)  # index arrays are message by message: the first k's
+        nd, nb, n = len(self.doubles), len(self.bools), len(self.base)
+        if nd:
+            u8[dbl[:k * nd]] = values.view("<u8").reshape(-1)
+        if nb:
+            buf[bi[:k * nb]] = np.asarray(flags, dtype=bool).reshape(-1)
         if self.n_stamps:
-            ts[tsi] = np.repeat(np.frombuffer(b"".join(stamps), dtype=ts.dtype), self.n_stamps)
-        raw, n = buf.tobytes(), len(self.base)
+            ts[tsi[:k * self.n_stamps]] = np.repeat(np.frombuffer(b"".join(stamps), dtype=ts.dtype), self.n_stamps)
+        raw = buf[:k * n].tobytes()
         return [raw[i * n:(i + 1) * n] for i in range(k)]
-
-    def copy(self) -> _Template:
-        """The same layout with scratch buffers of its own (the offsets are shared, never written)."""
-        out = object.__new__(_Template)
-        out.base, out.doubles, out.stamps, out.bools = self.base, self.doubles, self.stamps, self.bools
-        out.stamp_size, out.n_stamps = self.stamp_size, self.n_stamps
-        out._many = {}
-        return out
 
 
 def runs(ns: Sequence[int]) -> list[tuple[int, int, list[bytes]]]:
@@ -182,13 +184,13 @@ _COMPILED: dict[tuple, _Template] = {}  # layout key → template: a log opened 
 
 
 def _compiled(key: tuple, build) -> _Template:
-    """The template of layout ``key`` (built by ``build()`` the first time), as a copy of its own."""
+    """The template of layout ``key`` (built by ``build()`` the first time; shared, see `_Template`)."""
     t = _COMPILED.get(key)
     if t is None:
         if len(_COMPILED) > 256:  # many robots in one process: keep the cache bounded
             _COMPILED.clear()
         t = _COMPILED[key] = build()
-    return t.copy()
+    return t
 
 
 class FrameTransformsEncoder:
