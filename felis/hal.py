@@ -17,7 +17,7 @@ Torque goes off on ``disarm()``, on ``close()`` and on any exception escaping a 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -26,6 +26,45 @@ from felis.errors import LifecycleError
 from felis.spec import RobotSpec
 
 
+class _Factory:
+    def __repr__(self) -> str:
+        return "<factory>"
+
+
+_FACTORY = _Factory()  # the default shown for a field with a default factory, as dataclasses show it
+
+
+def _fast_init(cls):
+    """Give a frozen dataclass an ``__init__`` that fills the instance's dict in one update.
+
+    The generated one assigns each field through ``object.__setattr__`` (frozen classes refuse plain
+    assignment), about 0.3 µs a field; a loop tick makes a `State`, an `Imu`, a `Truth` and three `Command`s,
+    so that was ~10 µs of each tick. Same signature, defaults and default factories; the instances stay
+    frozen (assignment still raises ``FrozenInstanceError``), compare, hash and print the same.
+    """
+    ns: dict = {"MISSING": _FACTORY}
+    args, body = [], []
+    for f in fields(cls):
+        if f.default is not MISSING:
+            ns[f"_d_{f.name}"] = f.default
+            args.append(f"{f.name}=_d_{f.name}")
+        elif f.default_factory is not MISSING:
+            ns[f"_f_{f.name}"] = f.default_factory  # called when the argument is left out, as before
+            args.append(f"{f.name}=MISSING")
+            body.append(f"if {f.name} is MISSING: {f.name} = _f_{f.name}()")
+        else:
+            args.append(f.name)
+    body.append("self.__dict__.update(" + ", ".join(f"{f.name}={f.name}" for f in fields(cls)) + ")")
+    exec(f"def __init__(self, {', '.join(args)}):\n    " + "\n    ".join(body), ns)  # noqa: S102 - fixed text
+    init = ns["__init__"]
+    init.__qualname__ = f"{cls.__qualname__}.__init__"
+    init.__doc__ = cls.__init__.__doc__
+    cls.__init__ = init
+    return cls
+
+
+
+@_fast_init
 @dataclass(frozen=True)
 class Imu:
     """IMU reading in the world-aligned convention of MuJoCo sensors.
@@ -62,6 +101,7 @@ class Faults:
             self.stale, self.torque_off, self.rebooted, self.watchdog))
 
 
+@_fast_init
 @dataclass(frozen=True)
 class Truth:
     """What only a simulator knows exactly, in the world frame (z up, floor at z = 0).
@@ -80,6 +120,7 @@ class Truth:
     low: float = float("nan")
 
 
+@_fast_init
 @dataclass(frozen=True)
 class State:
     """What the robot reports at one tick.
@@ -103,6 +144,7 @@ class State:
     truth: Truth | None = None
 
 
+@_fast_init
 @dataclass(frozen=True)
 class Command:
     """What a controller asks for.
@@ -181,6 +223,7 @@ class RobotBase:
     def __init__(self, spec: RobotSpec):
         self.spec = spec
         self._life = Lifecycle.DISCONNECTED
+        self._q_shape = (spec.n,)  # what write() checks each command's positions against
 
     @property
     def lifecycle(self) -> Lifecycle:
@@ -237,7 +280,7 @@ class RobotBase:
         if not (isinstance(q, np.ndarray) and q.dtype == np.float64):
             q = np.asarray(q, dtype=float)
             command = command.replace(q=q)
-        if q.shape != (self.spec.n,):
+        if q.shape != self._q_shape:
             raise ValueError(f"{self.spec.name}: command has {q.size} positions, robot has {self.spec.n} joints")
         try:
             return self._write(command)

@@ -181,6 +181,7 @@ def run_loop(
     finished = False  # the loop ended by its own rules, not by an exception
     needs_imu = bool(getattr(controller, "needs_imu", False))
     imu_seen, imu_lost_at = False, None
+    faults_ok = None  # the last Faults that servo_stop passed
     state = first_read(robot, cfg.read_fail_tolerance)
     try:
         if robot.lifecycle is not Lifecycle.ARMED:
@@ -211,12 +212,14 @@ def run_loop(
                         break
                 else:
                     dog.read_ok()
-                halt = servo_stop(robot.spec, faults, cfg.stop_on_hardware_error)
-                if halt is not None:
-                    kind, stopped = halt
-                    if log is not None:
-                        log.event(state.t, kind, detail=stopped)
-                    break
+                if faults is not faults_ok:  # a backend that reports the same (frozen) Faults: checked once
+                    halt = servo_stop(robot.spec, faults, cfg.stop_on_hardware_error)
+                    if halt is not None:
+                        kind, stopped = halt
+                        if log is not None:
+                            log.event(state.t, kind, detail=stopped)
+                        break
+                    faults_ok = faults
                 if state.imu is not None:
                     if imu_lost_at is not None and log is not None:
                         log.event(state.t, "imu_back", after_s=round(state.t - imu_lost_at, 4))
@@ -252,19 +255,20 @@ def run_loop(
                 sent = command
             layer.sent(sent)
             t_ctrl = time.perf_counter()
+            control_s = t_ctrl - t0
             for m in monitors:
                 m(state, sent)
             if log_tick is not None:
-                log_tick(state, sent, t_ctrl - t0)
+                log_tick(state, sent, control_s)
             elif log is not None:
                 log.state(state)
                 log.command(state.t, sent)
                 if log_timing is not None:
-                    log_timing(state.t, t_ctrl - t0)
+                    log_timing(state.t, control_s)
             if log is not None:
                 for kind, detail in layer.events:
                     log.event(state.t, kind, **detail)
-            control[k] = t_ctrl - t0
+            control[k] = control_s
             extra[k] = time.perf_counter() - t_ctrl
             ticks = k + 1
             if until is not None and until(state):
@@ -280,7 +284,7 @@ def run_loop(
                 else:
                     time.sleep(deadline - now)
             else:  # simulated time: would the control path have kept up in real time?
-                overrun = control[k] > dt
+                overrun = control_s > dt
             if dog.tick(overrun, enforce=clock == "wall"):
                 stopped = f"watchdog: {dog.tripped}"
                 break

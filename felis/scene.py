@@ -50,7 +50,8 @@ class RobotScene:
 
 class BodyPoses(Protocol):
     """Every body's pose in the world at a state: ``bodies`` names them (the scene's order); calling returns
-    (len(bodies), 7): x, y, z and the rotation x, y, z, w (Foxglove's order), or None when not known."""
+    (len(bodies), 7): x, y, z and the rotation x, y, z, w (Foxglove's order), a new array each call (a log
+    keeps it until its chunk is written), or None when not known."""
 
     bodies: tuple[str, ...]
 
@@ -81,7 +82,7 @@ class BodyModelPoses:
         if not np.all(np.isfinite(q)):
             return None
         p, R, _ = m.forward(q, root)
-        out = self._out
+        out = np.empty_like(self._out)
         out[:, :3] = p
         if m.feet.size:
             out[:, 2] += m.foot_radius - p[m.feet, 2].min()

@@ -35,6 +35,7 @@ from felis.bodymodel import low_matrix
 from felis.errors import FelisError, ModelMismatch, SimulationError
 from felis.hal import Command, Faults, Imu, Lifecycle, RobotBase, State, Truth
 from felis.servos import servo_model
+from felis.sim.gather import Gather
 from felis.sim.servo import (
     Controller,
     JointActuators,
@@ -50,6 +51,7 @@ from felis.spec import RobotSpec
 
 MODELS_DIR = resources.files("felis.sim") / "models"
 TOUCH_THRESHOLD_N = 1e-3
+_min = np.minimum.reduce  # without ndarray.min's Python wrapper
 STAND_LIFT_M = 0.25  # fixed base: the root body is lifted this much above its MJCF pose (the stand)
 
 
@@ -171,6 +173,7 @@ class MujocoRobot(RobotBase):
         self._goal = np.zeros(spec.n)
         self._dq_max: np.ndarray | None = None
         self._torque = np.zeros(spec.n, dtype=bool)
+        self._all_on = False  # self._torque.all(), kept by _set_torque
         self._stiffness: np.ndarray | None = None  # `Command.stiffness` in force (None: every joint as described)
 
     # ------------------------------------------------------------------ connect / model checks
@@ -354,7 +357,48 @@ class MujocoRobot(RobotBase):
             robot = {b for b in range(m.nbody) if m.body_rootid[b] == m.body_rootid[self._truth_root]}
             lb, lp, self._low_r = collision_points(m, robot - feet)
             self._low_M = low_matrix(lb, lp, m.nbody) if lb.size else None
-            self._low_v = np.zeros((m.nbody, 4))
+        self._gather_layout(m)
+
+    def _gather_layout(self, m: mujoco.MjModel) -> None:
+        """What `_read` takes from the data in one gather (`felis.sim.gather`), and where each piece lands."""
+        n = self.spec.n
+        parts = [("qpos", self._qadr), ("qvel", self._dadr), ("qfrc_actuator", self._dadr)]
+        if self._imu is not None:
+            parts.append(("sensordata", self._imu))
+        if self._touch is not None:
+            parts.append(("sensordata", self._touch))
+        if self._height_site is not None:
+            parts.append(("site_xpos", [3 * self._height_site + 2]))
+        low_bodies = np.zeros(0, dtype=int)
+        if self._truth_root is not None:
+            b = self._truth_root
+            parts += [("subtree_com", range(3 * b, 3 * b + 3)), ("subtree_linvel", range(3 * b, 3 * b + 3)),
+                      ("xpos", (3 * self._feet[:, None] + np.arange(3)).ravel())]
+            if self._low_M is not None:  # z − r = M · (row 3 of R_b and p_b,z of the bodies with points, 1)
+                P = len(self._low_r)
+                M = self._low_M.reshape(P, m.nbody, 4)
+                low_bodies = np.flatnonzero(np.abs(M).sum(axis=(0, 2)) > 0)
+                M = M[:, low_bodies]
+                self._low_M = np.hstack([M[:, :, :3].reshape(P, -1), M[:, :, 3], -self._low_r[:, None]])
+                parts += [("xmat", (9 * low_bodies[:, None] + np.arange(6, 9)).ravel()),
+                          ("xpos", 3 * low_bodies + 2),
+                          ("xmat", [8])]  # the world body's R[2, 2]: always 1, the constant for −r
+        self._gather = Gather(self.data, parts)
+        sl = iter(self._gather.slices)
+        self._sl_q, self._sl_dq, self._sl_frc = next(sl), next(sl), next(sl)
+        self._sl_qdq = slice(0, 2 * n)
+        self._n = n
+        self._qdq_inv = np.concatenate([self._inv_qstep, self._inv_vstep])
+        self._qdq_step = np.concatenate([self._qstep, self._vstep])
+        self._sl_imu = next(sl) if self._imu is not None else None
+        self._sl_touch = next(sl) if self._touch is not None else None
+        self._sl_height = next(sl).start if self._height_site is not None else None
+        if self._truth_root is not None:
+            self._sl_com, self._sl_comvel, self._sl_feet = next(sl), next(sl), next(sl)
+            self._nfeet = len(self._feet)
+            if self._low_M is not None:
+                a, _, b = next(sl), next(sl), next(sl)
+                self._sl_low = slice(a.start, b.stop)
 
     # ------------------------------------------------------------------ torque
     def _set_torque(self, mask: np.ndarray) -> None:
@@ -363,6 +407,7 @@ class MujocoRobot(RobotBase):
         new = np.array(mask, dtype=bool)
         was = getattr(self, "_torque", np.zeros_like(new))
         self._torque = new
+        self._all_on = bool(new.all())
         for i, acts in enumerate(self._acts):
             configure_joint(self.model, acts, self._joint_ctl(i), bool(new[i]))
         if self._iact.size and self.data is not None:
@@ -384,37 +429,32 @@ class MujocoRobot(RobotBase):
     # ------------------------------------------------------------------ I/O
     def _read(self) -> State:
         d = self.data
-        q = d.qpos[self._qadr]  # fancy indexing: copies
-        qvel = d.qvel[self._dadr]
-        effort = d.qfrc_actuator[self._dadr] - self._damping * qvel
-        if self.quantize:  # whole encoder ticks and velocity units, as the servo reports them
-            dq = np.rint(qvel * self._inv_vstep)
-            dq *= self._vstep
-            np.rint(q * self._inv_qstep, out=q)
-            q *= self._qstep
-        else:
-            dq = qvel
-        sd = d.sensordata
-        imu = None
-        if self._imu is not None:
-            v = sd[self._imu]  # one gather; the three fields are views of this copy
-            imu = Imu(quat=v[0:4], gyro=v[4:7], accel=v[7:10])
-        contacts = None if self._touch is None else sd[self._touch] > TOUCH_THRESHOLD_N
-        height = None if self._height_site is None else float(d.site_xpos[self._height_site, 2])
-        truth = None
         if self._truth_root is not None:
             mujoco.mj_subtreeVel(self.model, d)
-            b = self._truth_root
+        v = self._gather.take()  # every reading of the tick in one copy; the fields below are views of it
+        qvel = v[self._sl_dq]
+        effort = v[self._sl_frc] - self._damping * qvel
+        if self.quantize:  # whole encoder ticks and velocity units, as the servo reports them
+            qdq = v[self._sl_qdq] * self._qdq_inv
+            np.rint(qdq, out=qdq)
+            qdq *= self._qdq_step
+            q, dq = qdq[:self._n], qdq[self._n:]
+        else:
+            q, dq = v[self._sl_q], qvel
+        imu = None
+        if self._sl_imu is not None:
+            a = self._sl_imu.start
+            imu = Imu(quat=v[a:a + 4], gyro=v[a + 4:a + 7], accel=v[a + 7:a + 10])
+        touch = None if self._sl_touch is None else v[self._sl_touch]
+        contacts = None if touch is None else touch > TOUCH_THRESHOLD_N
+        height = None if self._sl_height is None else float(v[self._sl_height])
+        truth = None
+        if self._truth_root is not None:
             low = math.nan
             if self._low_M is not None:  # z of the lowest point: R_b[2] · point + p_b,z − r (`low_matrix`)
-                v = self._low_v
-                v[:, :3] = d.xmat[:, 6:9]
-                v[:, 3] = d.xpos[:, 2]
-                z = self._low_M @ v.ravel()
-                z -= self._low_r
-                low = float(z.min())
-            truth = Truth(com=d.subtree_com[b].copy(), com_vel=d.subtree_linvel[b].copy(),
-                          feet=d.xpos[self._feet], foot_force=sd[self._touch], low=low)
+                low = float(_min(self._low_M @ v[self._sl_low]))
+            truth = Truth(com=v[self._sl_com], com_vel=v[self._sl_comvel],
+                          feet=v[self._sl_feet].reshape(self._nfeet, 3), foot_force=touch, low=low)
         return State(t=float(d.time), q=q, dq=dq, effort=effort, imu=imu, contacts=contacts,
                      height=height, faults=self._faults, truth=truth)
 
@@ -427,7 +467,7 @@ class MujocoRobot(RobotBase):
                 raise ValueError(f"torque mask has {torque.size} entries, robot has {self.spec.n} joints")
             if not np.array_equal(torque, self._torque):
                 self._set_torque(torque)
-        elif not self._torque.all():
+        elif not self._all_on:
             self._set_torque(np.ones(self.spec.n, dtype=bool))
         if command.stiffness is not None or self._stiffness is not None:
             self._set_stiffness(command.stiffness)
@@ -479,7 +519,8 @@ class MujocoRobot(RobotBase):
                 mujoco.mj_step(m, d)
                 self.substep_hook(m, d)
         # On a non-finite or huge state MuJoCo counts a warning and resets the data.
-        if any(w.number for w in self._divergence):
+        w0, w1, w2 = self._divergence
+        if w0.number or w1.number or w2.number:
             raise SimulationError(f"{self.spec.name}: physics diverged (MuJoCo flagged non-finite or huge "
                                   "state and reset); the episode cannot continue")
 

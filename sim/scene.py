@@ -13,6 +13,7 @@ import mujoco
 import numpy as np
 
 from felis.scene import BodyModelPoses, Geom, RobotScene
+from felis.sim.gather import Gather
 from felis.sim.robot import load_model, model_path
 from felis.spec import RobotSpec
 
@@ -45,21 +46,24 @@ def model_scene(m: mujoco.MjModel, bodies: list[int] | None = None, path: np.nda
 
 class MujocoPoses:
     """`felis.scene.BodyPoses` of a `felis.sim.MujocoRobot`: every body but the world, from MuJoCo's data (the
-    state just read: the loop logs before it advances the physics)."""
+    state just read: the loop logs before it advances the physics), in one gather (`felis.sim.gather`)."""
 
     def __init__(self, robot):
         self.robot = robot
         m = robot.model
         self.bodies = tuple(m.body(b).name for b in range(1, m.nbody))
-        self._out = np.zeros((m.nbody - 1, 7))
+        self._gather = self._layout()
+
+    def _layout(self) -> Gather:
+        parts = []
+        for b in range(1, self.robot.model.nbody):  # per body: x y z, then the rotation x y z w
+            parts += [("xpos", [3 * b, 3 * b + 1, 3 * b + 2]), ("xquat", [4 * b + 1, 4 * b + 2, 4 * b + 3, 4 * b])]
+        return Gather(self.robot.data, parts)
 
     def __call__(self, state) -> np.ndarray:
-        d, out = self.robot.data, self._out
-        out[:, :3] = d.xpos[1:]
-        xq = d.xquat[1:]
-        out[:, 3:6] = xq[:, 1:]
-        out[:, 6] = xq[:, 0]
-        return out
+        if self._gather.data is not self.robot.data:  # reconnected: a new MjData
+            self._gather = self._layout()
+        return self._gather.take().reshape(-1, 7)
 
 
 def hardware_view(spec: RobotSpec) -> tuple[RobotScene, BodyModelPoses] | None:

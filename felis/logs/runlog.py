@@ -159,12 +159,7 @@ class RunLog(McapLog):
         self._check_open()
         ns = self.ns(state.t)
         self._tick(ns)
-        v = None
-        if self._poses is not None:
-            v = self._poses(state)
-            if v is not None:
-                v = v.copy()
-        self._ticks.append((ns, state, v))
+        self._ticks.append((ns, state, None if self._poses is None else self._poses(state)))
 
     def _write_pending(self) -> None:
         """The deferred ticks, channel by channel: the Protobuf ones of all the ticks in one scatter each
@@ -266,8 +261,11 @@ class RunLog(McapLog):
     def tick(self, state: State, command: Command, control_s: float) -> None:
         """One loop tick in one call (what `felis.loop.run_loop` uses): `state`, `command` at the state's time,
         `timing`."""
-        self.state(state)
-        ns = self._ticks[-1][0]
+        if self._closed:
+            self._check_open()
+        ns = self.ns(state.t)  # `state`, inline: this runs every tick
+        self._tick(ns)
+        self._ticks.append((ns, state, None if self._poses is None else self._poses(state)))
         self._cmds.append((ns, command.q))
         self._times.append((ns, control_s))
 
