@@ -17,9 +17,9 @@ from felis.sim.gather import Gather
 from felis.sim.robot import load_model, model_path
 from felis.spec import RobotSpec
 
-_SHAPES = {mujoco.mjtGeom.mjGEOM_BOX: "box", mujoco.mjtGeom.mjGEOM_SPHERE: "sphere",
-           mujoco.mjtGeom.mjGEOM_ELLIPSOID: "ellipsoid", mujoco.mjtGeom.mjGEOM_CYLINDER: "cylinder",
-           mujoco.mjtGeom.mjGEOM_CAPSULE: "capsule", mujoco.mjtGeom.mjGEOM_PLANE: "plane"}
+_SHAPES = {int(mujoco.mjtGeom.mjGEOM_BOX): "box", int(mujoco.mjtGeom.mjGEOM_SPHERE): "sphere",
+           int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid", int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
+           int(mujoco.mjtGeom.mjGEOM_CAPSULE): "capsule", int(mujoco.mjtGeom.mjGEOM_PLANE): "plane"}
 
 
 def model_scene(m: mujoco.MjModel, bodies: list[int] | None = None, path: np.ndarray | None = None) -> RobotScene:
@@ -28,19 +28,24 @@ def model_scene(m: mujoco.MjModel, bodies: list[int] | None = None, path: np.nda
         bodies = list(range(1, m.nbody))
     index = {b: i for i, b in enumerate(bodies)}
     index[0] = -1
+    # the model's arrays read once, as Python lists (an MjModel attribute is a new numpy view at each access)
+    bodyid, gtype, group, matid = (getattr(m, f).tolist() for f in ("geom_bodyid", "geom_type", "geom_group",
+                                                                      "geom_matid"))
+    size, pos, quat, grgba, mrgba = (getattr(m, f).tolist() for f in ("geom_size", "geom_pos", "geom_quat",
+                                                                        "geom_rgba", "mat_rgba"))
     geoms = []
     for g in range(m.ngeom):
-        b = int(m.geom_bodyid[g])
-        shape = _SHAPES.get(int(m.geom_type[g]))
-        if b not in index or shape is None or m.geom_group[g] > 2:
+        b = bodyid[g]
+        shape = _SHAPES.get(gtype[g])
+        if b not in index or shape is None or group[g] > 2:
             continue
-        rgba = m.mat_rgba[m.geom_matid[g]] if m.geom_matid[g] >= 0 else m.geom_rgba[g]
+        rgba = mrgba[matid[g]] if matid[g] >= 0 else grgba[g]
         if rgba[3] <= 0:
             continue
-        geoms.append(Geom(body=index[b], shape=shape, size=tuple(float(x) for x in m.geom_size[g]),
-                          pos=tuple(float(x) for x in m.geom_pos[g]), quat=tuple(float(x) for x in m.geom_quat[g]),
-                          rgba=tuple(float(x) for x in rgba)))
-    return RobotScene(bodies=tuple(m.body(b).name for b in bodies), geoms=tuple(geoms),
+        geoms.append(Geom(body=index[b], shape=shape, size=tuple(size[g]), pos=tuple(pos[g]), quat=tuple(quat[g]),
+                          rgba=tuple(rgba)))
+    names = tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or "" for b in bodies)
+    return RobotScene(bodies=names, geoms=tuple(geoms),
                       path=None if path is None else np.asarray(path, dtype=float).reshape(-1, 3))
 
 
@@ -51,14 +56,15 @@ class MujocoPoses:
     def __init__(self, robot):
         self.robot = robot
         m = robot.model
-        self.bodies = tuple(m.body(b).name for b in range(1, m.nbody))
+        self.bodies = tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or "" for b in range(1, m.nbody))
         self._gather = self._layout()
 
     def _layout(self) -> Gather:
-        parts = []
-        for b in range(1, self.robot.model.nbody):  # per body: x y z, then the rotation x y z w
-            parts += [("xpos", [3 * b, 3 * b + 1, 3 * b + 2]), ("xquat", [4 * b + 1, 4 * b + 2, 4 * b + 3, 4 * b])]
-        return Gather(self.robot.data, parts)
+        b = np.arange(1, self.robot.model.nbody)[:, None]
+        n = len(b)  # per body: x y z from xpos, then the rotation x y z w from xquat (w first there)
+        parts = [("xpos", (3 * b + np.arange(3)).ravel()), ("xquat", (4 * b + np.array([1, 2, 3, 0])).ravel())]
+        order = np.hstack([np.arange(3 * n).reshape(n, 3), 3 * n + np.arange(4 * n).reshape(n, 4)]).ravel()
+        return Gather(self.robot.data, parts, order)
 
     def __call__(self, state) -> np.ndarray:
         if self._gather.data is not self.robot.data:  # reconnected: a new MjData

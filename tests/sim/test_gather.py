@@ -43,6 +43,16 @@ def test_one_take_equals_the_fields_it_names(moving_cat):
     assert d.qpos[2] == want[1]
 
 
+def test_order_interleaves_fields(moving_cat):
+    d = moving_cat.data
+    parts = [("xpos", [3, 4, 5, 6, 7, 8]), ("xquat", [4, 5, 6, 7, 8, 9, 10, 11])]
+    order = [0, 1, 2, 6, 7, 8, 9, 3, 4, 5, 10, 11, 12, 13]  # body 1: position, rotation; body 2: the same
+    want = np.concatenate([d.xpos[1], d.xquat[1], d.xpos[2], d.xquat[2]])
+    np.testing.assert_array_equal(Gather(d, parts, order).take(), want)
+    with pytest.raises(ValueError, match="permutation"):
+        Gather(d, parts, order[:-1])
+
+
 def test_arrays_outside_one_buffer_are_read_field_by_field():
     class Apart:  # two separate allocations: no flat view spans them
         a = np.arange(5.0)
@@ -51,6 +61,7 @@ def test_arrays_outside_one_buffer_are_read_field_by_field():
     g = Gather(Apart(), [("b", [9, 0]), ("a", [4])])
     assert not g.one_buffer
     np.testing.assert_array_equal(g.take(), [19.0, 10.0, 4.0])
+    np.testing.assert_array_equal(Gather(Apart(), [("b", [9, 0]), ("a", [4])], [2, 0, 1]).take(), [4.0, 19.0, 10.0])
 
 
 def test_bad_fields_are_refused_with_their_name(moving_cat):
