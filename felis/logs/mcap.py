@@ -88,7 +88,8 @@ class McapLog:
     # -- channels -------------------------------------------------------------------------------
 
     def channel(self, topic: str, schema: dict | foxglove.Schema, encoding: str = "json"):
-        """A function ``put(ns, data: bytes)`` that logs on ``topic`` to the file and the live view."""
+        """A function ``put(ns, data: bytes)`` that logs on ``topic`` to the file and the live view; ``put.many(ns,
+        messages)`` logs a batch."""
         if isinstance(schema, dict):
             chans = [foxglove.Channel(topic, schema=schema, context=c) for c in self._contexts]
         else:
@@ -100,6 +101,10 @@ class McapLog:
 
             def put(ns: int, data: bytes) -> None:
                 one(data, ns)
+
+            def many(ns: list[int], msgs: list[bytes]) -> None:
+                for n, m in zip(ns, msgs, strict=True):
+                    one(m, n)
         else:
             self.live.register(topic, chans[-1])
             watched = self.live.watchers(topic)
@@ -111,6 +116,14 @@ class McapLog:
                     file_log(data, ns)
                 if watched[0]:
                     live_log(data, ns)
+
+            def many(ns: list[int], msgs: list[bytes]) -> None:
+                for n, m in zip(ns, msgs, strict=True):
+                    if file_log is not None:
+                        file_log(m, n)
+                    if watched[0]:
+                        live_log(m, n)
+        put.many = many  # a batch: ``put.many(times, messages)``, one Python call fewer per message
         self._outs[topic] = (chans, put)
         return put
 

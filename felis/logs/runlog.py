@@ -178,34 +178,28 @@ class RunLog(McapLog):
             else:
                 msgs = [self._js_noeff.encode(n, (s.q, s.dq)) if s.effort is None else
                         self._js_full.encode(n, (s.q, s.dq, s.effort)) for n, s in zip(ns, states, strict=True)]
-            for n, m in zip(ns, msgs, strict=True):
-                put(n, m)
+            put.many(ns, msgs)
             if self._put_tf is not None:
                 posed = [(n, v) for n, _, v in ticks if v is not None]
                 if posed:
                     put = self._put_tf
                     at = [n for n, _ in posed]
-                    msgs = self._tf.encode_many(at, np.array([v for _, v in posed]),
-                                                stamps if len(at) == len(ns) else None)
-                    for n, m in zip(at, msgs, strict=True):
-                        put(n, m)
+                    put.many(at, self._tf.encode_many(at, np.array([v for _, v in posed]),
+                                                      stamps if len(at) == len(ns) else None))
             self._state_json(ns, states)
         if cmds:
             self._cmds = []
             at = [n for n, _ in cmds]
             put = self._put_jc
             same = ticks and at == ns  # commands logged with their states (the loop): their timestamps are made
-            msgs = self._jc.encode_many(at, np.array([q for _, q in cmds])[:, None, :], stamps if same else None)
-            for n, m in zip(at, msgs, strict=True):
-                put(n, m)
+            put.many(at, self._jc.encode_many(at, np.array([q for _, q in cmds])[:, None, :],
+                                              stamps if same else None))
         if times:
             self._times = []
             if self._put_timing is None:
                 self._put_timing = self.channel("/timing", TIMING.schema, "protobuf")
-            put = self._put_timing
-            for (n, _), m in zip(times, TIMING.encode_many(np.array([[c * 1e3] for _, c in times], dtype=float)),
-                                 strict=True):
-                put(n, m)
+            self._put_timing.many([n for n, _ in times],
+                                  TIMING.encode_many(np.array([[c * 1e3] for _, c in times], dtype=float)))
         super()._write_pending()
 
     def _state_json(self, ns: list[int], states: list[State]) -> None:
@@ -221,26 +215,20 @@ class RunLog(McapLog):
                                 np.array([i.accel for _, i in imus], dtype=float), tilt[:, None]], axis=1)
             if self._put_imu is None:
                 self._put_imu = self.channel("/imu", IMU.schema, "protobuf")
-            put = self._put_imu
-            for (n, _), m in zip(imus, IMU.encode_many(v), strict=True):
-                put(n, m)
+            self._put_imu.many([n for n, _ in imus], IMU.encode_many(v))
         nf = len(self._feet)
         cs = [(n, s.contacts) for n, s in zip(ns, states, strict=True)
               if s.contacts is not None and len(s.contacts) == nf]
         if cs and nf:
             if self._put_contacts is None:
                 self._put_contacts = self.channel("/contacts", self._contacts_msg.schema, "protobuf")
-            put = self._put_contacts
             flags = np.array([c for _, c in cs], dtype=bool)
-            for (n, _), m in zip(cs, self._contacts_msg.encode_many(None, flags), strict=True):
-                put(n, m)
+            self._put_contacts.many([n for n, _ in cs], self._contacts_msg.encode_many(None, flags))
         hs = [(n, s.height) for n, s in zip(ns, states, strict=True) if s.height is not None]
         if hs:
             if self._put_base is None:
                 self._put_base = self.channel("/base", BASE.schema, "protobuf")
-            put = self._put_base
-            for (n, _), m in zip(hs, BASE.encode_many(np.array([[h] for _, h in hs], dtype=float)), strict=True):
-                put(n, m)
+            self._put_base.many([n for n, _ in hs], BASE.encode_many(np.array([[h] for _, h in hs], dtype=float)))
         for n, s in zip(ns, states, strict=True):
             f = s.faults
             if f is not None and f is not self._faults_seen:  # the same object: unchanged (the simulation's)
