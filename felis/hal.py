@@ -82,7 +82,9 @@ class Imu:
 class Faults:
     """Per-joint hardware error bits (Dynamixel Hardware Error Status) and communication errors.
 
-    ``Faults()`` is "no faults" for a robot of any size (``hardware`` empty, the masks None)."""
+    ``Faults()`` is "no faults" for a robot of any size (``hardware`` empty, the masks None). Its arrays are
+    not changed once reported: a backend whose faults change reports a new `Faults` (the loop checks an object
+    it has seen once, `felis.loop.run_loop`)."""
 
     hardware: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))  # int per joint, 0 = healthy
     comm_errors: int = 0  # failed transactions since connect

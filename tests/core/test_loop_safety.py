@@ -7,7 +7,7 @@ import pytest
 
 from felis.controllers import PoseController
 from felis.errors import CommError, LifecycleError, ParameterError
-from felis.hal import Command, Lifecycle, State
+from felis.hal import Command, Faults, Lifecycle, State
 from felis.loop import run_loop
 from felis.safety import SafetyConfig, SafetyLayer
 from felis.sim import MujocoRobot
@@ -286,6 +286,63 @@ def test_a_robot_that_reports_no_faults_runs(explicit_none, tmp_path):
     with ThirdPartyCat(explicit_none) as robot, RunLog(tmp_path / "r.mcap", robot.spec) as log:
         report = run_loop(robot, PoseController("stand"), duration=0.3, log=log)
     assert report.ok and report.ticks == 30
+
+
+class FaultingCat(MujocoRobot):
+    """The MuJoCo cat reporting one unchanged `Faults` for some ticks (as the simulation does), then a new one
+    with a servo's hardware error (as the Dynamixel backend does when its status changes)."""
+
+    def __init__(self, after_ticks: int):
+        super().__init__(CAT)
+        self.after_ticks, self.reads = after_ticks, 0
+
+    def _read(self):
+        self.reads += 1
+        if self.reads == self.after_ticks:
+            hw = np.zeros(CAT.n, dtype=np.int32)
+            hw[2] = 0x20  # overload
+            self._faults = Faults(hardware=hw)
+        return super()._read()
+
+
+def test_a_new_faults_object_is_checked_though_the_last_one_passed():
+    """The loop checks a `Faults` it has already seen once (the simulation reports the same object every tick);
+    a backend whose faults change reports a new one, and that one stops the run."""
+    with FaultingCat(after_ticks=20) as robot:
+        report = run_loop(robot, PoseController("stand"), duration=0.5)
+    assert report.stopped.startswith("hardware error") and CAT.joints[2].name in report.stopped
+    assert report.ticks == 20 - 2 - 1  # two reads before the first tick (before and after arming)
+
+
+def test_the_hot_dataclasses_stay_frozen_dataclasses():
+    """`felis.hal` gives State, Imu, Truth and Command a faster ``__init__``: same signature, defaults, default
+    factories, equality, hashing rules and frozenness as the one dataclasses writes."""
+    import dataclasses
+    import inspect
+
+    from felis.hal import Imu, Truth
+
+    for cls in (State, Command, Imu, Truth):
+        params = inspect.signature(cls).parameters
+        assert list(params) == [f.name for f in dataclasses.fields(cls)]
+        for f in dataclasses.fields(cls):
+            if f.default is not dataclasses.MISSING:
+                assert params[f.name].default is f.default
+    q = np.arange(3.0)
+    s = State(0.5, q, q)
+    assert s.effort is None and s.truth is None and not s.faults.any
+    assert State(0.5, q, q).faults is not s.faults  # a new default Faults for each, as the factory gives
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        s.t = 1.0
+    assert dataclasses.replace(s, t=2.0).t == 2.0 and dataclasses.replace(s, t=2.0).q is q
+    c = Command(q=q)
+    assert Command(q=(1.0, 2.0)) == Command(q=(1.0, 2.0)) != Command(q=(1.0, 3.0))
+    assert hash(Command(q=(1.0, 2.0))) == hash(Command(q=(1.0, 2.0)))  # frozen and eq: hashable by value
+    assert repr(c) == f"Command(q={q!r}, dq_max=None, torque=None, stiffness=None)"
+    with pytest.raises(TypeError):
+        Command()  # q is required
+    with pytest.raises(TypeError):
+        State(0.0, q, q, bogus=1)
 
 
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the ignored Interrupted
