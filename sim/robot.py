@@ -14,7 +14,8 @@ time with the desired position, velocity and acceleration at the physics rate.
 Torque off (connected, or ``Command.torque`` False) zeroes every gain: the joint
 is then moved only by gravity, contacts, back-EMF damping and friction, like an unpowered servo; the
 integral restarts from zero when torque comes back.
-Readings are quantised like the servo's (4096 ticks per turn, 0.229 rpm), ``effort`` is the motor
+A tick's readings are one gather from MuJoCo's data (`felis.sim.gather`; the `State`'s arrays are views of that
+one copy). They are quantised like the servo's (4096 ticks per turn, 0.229 rpm), ``effort`` is the motor
 torque (the actuators' force on the joint minus back-EMF), ``height`` is the waist site's height above the floor.
 ``fixed_base=True`` hangs a floating-base robot on a stand (free joint removed, body lifted), as for
 system identification (`felis.calib.sysid`).
