@@ -83,7 +83,7 @@ def test_the_shipped_hard_drop_lands_on_mujoco_and_turns_the_cat_through_the_vir
     (`learning/weights/landing_hard_drop.json`) lands on MuJoCo by the landing rule. Through the virtual
     Dynamixel bus (servo-in-the-loop, on the wall clock) the same file turns the cat from 120° to below 45° before
     it touches down (measured 35–40° in 10 of 10 runs); whether it then stays on its feet depends on the clock's
-    jitter (upright in 7 of 10 runs: docs/landing.md), so that is not asserted here."""
+    jitter (upright in 7 and in 9 of 10 runs, two sessions: docs/landing.md), so that is not asserted here."""
     from pathlib import Path
 
     from felis.learning.landing.evaluate import LandingSim
