@@ -63,7 +63,6 @@ def _fast_init(cls):
     return cls
 
 
-
 @_fast_init
 @dataclass(frozen=True)
 class Imu:

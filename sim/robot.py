@@ -370,7 +370,6 @@ class MujocoRobot(RobotBase):
             parts.append(("sensordata", self._touch))
         if self._height_site is not None:
             parts.append(("site_xpos", [3 * self._height_site + 2]))
-        low_bodies = np.zeros(0, dtype=int)
         if self._truth_root is not None:
             b = self._truth_root
             parts += [("subtree_com", range(3 * b, 3 * b + 3)), ("subtree_linvel", range(3 * b, 3 * b + 3)),
