@@ -104,11 +104,24 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
 
 
 def _landing(policy=None, drop_height: float | None = None) -> Controller:
-    """The falling cat's evolved landing nets (seed 000): the shipped policy unless a file is given; a ``.json``
-    file is an open-loop whole-body motion searched for one drop (`felis.learning.landing.motion`), which must
-    run from the height it was searched for. ``drop_height`` (m) where the robot reports no height (hardware:
-    free-fall prediction)."""
+    """The falling cat's landing policy: the shipped motion library (`felis.learning.landing.library`) if there is
+    one, else the shipped evolved nets (seed 000), unless a policy is named: ``library``, ``shipped`` (the nets),
+    a ``.npz`` file of nets, a ``.json`` motion library, or a ``.json`` open-loop whole-body motion searched for one
+    drop (`felis.learning.landing.motion`), which must run from the height it was searched for. ``drop_height``
+    (m): the drop's, which the library times its motion by and where the robot reports no height (hardware) the
+    free-fall prediction starts from."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY, LibraryRule, is_library_file, load_library
+
+    if policy is None:
+        policy = "library" if DEFAULT_LIBRARY.is_file() else None
+    if policy is not None and str(policy) in ("library", "shipped"):
+        if str(policy) == "shipped":
+            policy = DEFAULT_POLICY
+        else:
+            return LandingController(LibraryRule(load_library(DEFAULT_LIBRARY), drop_height), drop_height=drop_height)
     if policy is not None and is_motion_file(policy):
+        if is_library_file(policy):
+            return LandingController(LibraryRule(load_library(policy), drop_height), drop_height=drop_height)
         rule, _ = load_motion(policy)  # ParameterError: one line
         if drop_height is not None and abs(drop_height - rule.height_m) > 1e-6:
             raise ParameterError(f"{policy}: a motion timed for a drop from {rule.height_m:g} m, not "

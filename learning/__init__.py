@@ -1,9 +1,11 @@
 """Learning (`felis.learning`): one subpackage per skill, and what they share.
 
-- `landing/` — the falling cat's evolved landing nets (seed 000): `policy` (inference: inputs, gene units,
-  behaviours, the shipped policy), `nets` (operators, fitness, ranking, saving), `features` (motion
+- `landing/` — the falling cat's landing (seed 000): `policy` (inference: inputs, gene units,
+  behaviours, the evolved nets), `nets` (operators, fitness, ranking, saving), `features` (motion
   features, DTW), `samples` (spine-rule motion samples), `config`, `task`, `breeding`, `checkpoint`,
-  `plot` and `train` (the evolution), `evaluate` (drops judged).
+  `plot` and `train` (the evolution), `evaluate` (drops judged), `motion`, `optimum`, `wholebody`, `designs`
+  (whole-body motions, the per-drop optimum, other cats), `library` and `library_build` (the motion library:
+  the shipped policy).
 - `ik/` — the arm's learned IK (seed 001): `solver` and `infer` (inference: the pipeline, numpy nets,
   weights), `data` and `corpus` (demonstrations), `net` and `train` (torch nets, training), `run` (a
   training run), `evaluate`. The posture rule and the trajectories are `felis.controllers.arm_posture`

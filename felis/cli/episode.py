@@ -145,13 +145,17 @@ def _check(ep: Episode) -> None:
 
 def _controller(ep: Episode, spec):
     """The episode's controller; one that needs the robot's body model (the balance monitor) gets it
-    from the MJCF here, the one place that wires simulation data into controllers."""
+    from the MJCF here, the one place that wires simulation data into controllers; one that takes the drop
+    height (landing: the motion library times its motion by the fall) gets the episode's drop."""
     options = dict(ep.controller_options)
     factory = CONTROLLERS.get(ep.controller)
-    if factory is not None and "body" in inspect.signature(factory).parameters and "body" not in options:
+    params = inspect.signature(factory).parameters if factory is not None else {}
+    if "body" in params and "body" not in options:
         from felis.sim.bodymodel import load_body_model
 
         options["body"] = load_body_model(spec)
+    if "drop_height" in params and options.get("drop_height") is None and ep.drop is not None:
+        options["drop_height"] = float(ep.drop[0])
     return make_controller(ep.controller, **options)
 
 

@@ -18,6 +18,7 @@ from felis.errors import ParameterError
 from felis.learning.landing.designs import DESIGNS
 
 DEFAULT_TRAIN_OUT = Path("runs/train-landing/landing.npz")
+DEFAULT_TRAIN_LIBRARY = Path("runs/train-landing/landing_library.json")
 
 
 def register_train(train_sub) -> None:
@@ -62,6 +63,32 @@ def register_train(train_sub) -> None:
     t.add_argument("--json", action="store_true", help="print the results as JSON")
     t.set_defaults(func=cmd_train_landing)
 
+    from felis.learning.landing.library import DEFAULT_LIBRARY
+    from felis.learning.landing.library_build import GRID, MAX_TILT_DEG, PROBES
+
+    b = train_sub.add_parser("landing-library", help="the landing motion library: the per-drop optimum on a grid of "
+                             "start attitudes, then which motion lands each probe attitude (docs/landing.md)")
+    b.add_argument("--out", type=Path, default=DEFAULT_TRAIN_LIBRARY,
+                   help=f"library file (.json; default {DEFAULT_TRAIN_LIBRARY}; the shipped one is "
+                   f"learning/weights/{DEFAULT_LIBRARY.name})")
+    b.add_argument("--heights", type=float, nargs="+", default=[1.0, 3.0], metavar="M",
+                   help="drop heights, one shelf each (default 1 3)")
+    b.add_argument("--grid", type=int, default=GRID, help=f"points of the attitudes' Fibonacci sphere (default {GRID})")
+    b.add_argument("--probes", type=int, default=PROBES,
+                   help=f"points of the probes' Fibonacci sphere (default {PROBES})")
+    b.add_argument("--max-tilt", type=float, default=MAX_TILT_DEG, metavar="DEG",
+                   help=f"attitudes tilted at most this far from upright (default {MAX_TILT_DEG:g})")
+    b.add_argument("--generations", type=int, default=30, help="CMA-ES generations per start (default 30)")
+    b.add_argument("--population", type=int, default=12, help="CMA-ES population (default 12)")
+    b.add_argument("--restarts", type=int, default=1, help="further CMA-ES starts (default 1)")
+    b.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
+    b.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the library)")
+    b.add_argument("--resume", action="store_true", help="continue from the checkpoints in --workdir")
+    b.add_argument("--workers", type=int, help="processes for the search, threads for the probes (default: every "
+                   "core)")
+    b.add_argument("--ray-address", metavar="ADDRESS|auto|local", help="search on a Ray cluster (felis[cluster])")
+    b.set_defaults(func=cmd_train_library)
+
 
 def register_eval(eval_sub) -> None:
     """Add ``felis eval landing``."""
@@ -70,12 +97,13 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--drops", required=True, metavar="FILE|random:N|euler:N",
                    help="a JSON list of drops {roll_deg, pitch_deg, yaw_deg, height_m}, random:N (orientations "
                    "uniform over all rotations) or euler:N (roll, pitch and yaw each uniform over the circle)")
-    e.add_argument("--policy", metavar="shipped|passive|stand|rules|optimum|FILE",
-                   help="what the cat does while it falls and lands: shipped (the trained policy, the default), "
-                   "passive (hold the pose at release), stand (go to the stand pose), rules (the hand-written "
-                   "spine rule of the nearest training orientation), optimum (the best open-loop whole-body "
-                   "motion CMA-ES finds for each drop: the ceiling; slow) or a policy file from `felis train "
-                   "landing`")
+    e.add_argument("--policy", metavar="library|shipped|passive|stand|rules|optimum|FILE",
+                   help="what the cat does while it falls and lands: library (the shipped motion library: the "
+                   "motion that lands most often near the attitude the IMU gives at release; the default), shipped "
+                   "(the evolved nets), passive (hold the pose at release), stand (go to the stand pose), rules (the "
+                   "hand-written spine rule of the nearest training orientation), optimum (the best open-loop "
+                   "whole-body motion CMA-ES finds for each drop: the ceiling; slow), a policy file from `felis "
+                   "train landing` (.npz) or a library from `felis train landing-library` (.json)")
     e.add_argument("--generations", type=int, default=30, help="optimum: CMA-ES generations per start (default 30)")
     e.add_argument("--population", type=int, default=12, help="optimum: CMA-ES population (default 12)")
     e.add_argument("--restarts", type=int, default=0, help="optimum: further starts from the next seeds (default 0)")
@@ -146,6 +174,48 @@ def cmd_train_landing(args) -> int:
         return 0
     stem = out.with_suffix("")
     print(f"policy: {out}; results: {stem}.results.json; curves: {stem}.curves.png")
+    return 0
+
+
+def cmd_train_library(args) -> int:
+    import json
+    import shlex
+
+    from felis.files import check_target, write_atomic
+    from felis.learning.landing.library_build import build_library
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".json":
+        raise ParameterError(f"{out}: a landing motion library file must end in .json")
+    if args.workers is not None and args.workers < 1:
+        raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
+    check_target(out, "landing motion library", ParameterError)
+    workdir = args.workdir or out.with_suffix(".ckpt")
+    if args.resume and not Path(workdir).is_dir():
+        raise ParameterError(f"--resume: no checkpoints in {workdir}")
+    quiet = not sys.stderr.isatty()
+    bar = output.bar(quiet=quiet, field="info", transient=False)
+    tasks: dict[str, int] = {}
+
+    def progress(stage, done, total):
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=total, info="")
+        bar.update(tasks[stage], completed=done)
+        if quiet:
+            print(f"{stage}: {done}/{total}", flush=True)
+
+    command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    with bar:
+        lib = build_library(args.heights, grid=args.grid, probes=args.probes, max_tilt_deg=args.max_tilt,
+                            generations=args.generations, population=args.population, restarts=args.restarts,
+                            seed=args.seed, workers=args.workers, ray_address=args.ray_address, workdir=workdir,
+                            resume=args.resume, command=command, progress=progress)
+    write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
+    for s in lib.shelves:
+        print(f"{s.height_m:g} m: {int(s.landed.sum())} of {len(s.landed)} entries (the optimum and its robust "
+              f"twins) land their own attitude; "
+              f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion")
+    print(f"library: {out}")
     return 0
 
 

@@ -27,9 +27,11 @@ def register(sub) -> None:
     run.add_argument("--roll", type=finite, default=0.0, help="with --height: initial roll (deg, default 0)")
     run.add_argument("--pitch", type=finite, default=0.0, help="with --height: initial pitch (deg, default 0)")
     run.add_argument("--yaw", type=finite, default=0.0, help="with --height: initial yaw (deg, default 0)")
-    run.add_argument("--policy", type=Path, metavar="FILE",
-                     help="landing: a policy file from `felis train landing` (default: the shipped one), or a "
-                     "whole-body motion (.json) searched for one drop (docs/landing.md)")
+    run.add_argument("--policy", type=Path, metavar="library|shipped|FILE",
+                     help="landing: library (the shipped motion library, the default), shipped (the evolved nets), "
+                     "a policy file from `felis train landing` (.npz), a motion library from `felis train "
+                     "landing-library` (.json) or a whole-body motion (.json) searched for one drop "
+                     "(docs/landing.md)")
     run.add_argument("--hold", type=finite, metavar="S",
                      help="arm-track: seconds at the first point before tracking, while the servos' I terms take up "
                           "gravity (the demo holds 6 s: median error 0.8 mm against 2.4 mm without)")

@@ -1,4 +1,4 @@
-"""The falling cat's evolved landing nets (`felis.learning.landing`, seed 000).
+"""The falling cat's landing (`felis.learning.landing`, seed 000): evolved nets, whole-body motions, the library.
 
     policy.py      gene units, SimpleBehaviour, ComplexBehaviour, load_policy: the policy at run time (inference)
     nets.py        random units, mutation, crossover, elimination, fitness, ranking, save_policy
@@ -11,4 +11,10 @@
     plot.py        plot_curves: the evolution's learning curves
     train.py       train_landing: the evolution (``felis train landing``)
     evaluate.py    drop experiments judged by the landed rule (LandingSim, run_drops, ``felis eval landing``)
+    motion.py      an open-loop whole-body motion (MotionRule, motion files): inference
+    optimum.py     the per-drop optimum: CMA-ES over whole-body motions (``--policy optimum``)
+    wholebody.py   whole-body motion samples (the optimum on a sphere of orientations, samples' format)
+    designs.py     other buildable cats (servos, voltage, paws): the design study
+    library.py     the motion library: the shipped policy (MotionLibrary, LibraryRule, LibraryBatch): inference
+    library_build.py  making it (``felis train landing-library``): optimum on a grid, robust twins, probes
 """

@@ -14,7 +14,8 @@ controller, so it lives here, not in `felis.sim`).
 
 Policies, by name: ``passive`` holds the pose the cat has at release (`make_controller("hold")`),
 ``stand`` moves to the stand pose (`make_controller("stand")`), ``rules`` runs the hand-written spine rule of
-the nearest training orientation, ``shipped`` the shipped trained policy, and a file path a trained policy
+the nearest training orientation, ``shipped`` the shipped trained nets, ``library`` the shipped motion library
+(`felis.learning.landing.library`), and a file path a trained policy (``.npz``) or a motion library (``.json``)
 (`check_policy`).
 
 `run_drops` runs a list of drops batched (`BatchLandingSim` on `felis.sim.batch.DropBatch`: every cat of a batch
@@ -46,7 +47,7 @@ from felis.spec import load_spec
 RATE_HZ = 100.0
 MARGIN_S = 1.0  # after the fall: the 0.5 s window and 0.5 s more
 POLICIES = {"passive": "hold", "stand": "stand"}  # baseline name → controller name
-NAMED = (*POLICIES, "rules", "shipped")
+NAMED = (*POLICIES, "rules", "shipped", "library")
 
 
 def shipped_policy() -> Path:
@@ -56,14 +57,36 @@ def shipped_policy() -> Path:
 
 
 def default_policy() -> str:
-    """The shipped trained policy when there is one, else ``passive``."""
+    """The shipped motion library when there is one, else the shipped trained nets, else ``passive``."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY
+
+    if DEFAULT_LIBRARY.is_file():
+        return "library"
     return "shipped" if shipped_policy().is_file() else "passive"
+
+
+def library_path(policy: str) -> Path | None:
+    """The motion library a policy names (``library`` or a ``.json`` file), else None."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY
+
+    if policy == "library":
+        return DEFAULT_LIBRARY
+    return Path(policy) if Path(policy).suffix.lower() == ".json" else None
 
 
 def check_policy(policy: str) -> str:
     """``policy`` if it can be run: a baseline (passive, stand), ``rules`` (the hand-written spine rule of
     the nearest training orientation), ``shipped`` or a policy file; else a one-line ParameterError."""
     if policy in POLICIES or policy == "rules":
+        return policy
+    lib = library_path(policy)
+    if lib is not None:
+        from felis.learning.landing.library import load_library
+
+        if not lib.exists():
+            what = "no shipped motion library" if policy == "library" else "no such library file"
+            raise ParameterError(f"--policy {policy}: {what} (make one: felis train landing-library)")
+        load_library(lib)  # ParameterError: one line naming the file
         return policy
     from felis.learning.landing.policy import PolicyError, load_policy
 
@@ -91,6 +114,12 @@ def make_policy(policy: str, drop: Drop | None = None) -> Controller:
 
         rule = nearest_rule((drop.roll_deg, drop.pitch_deg, drop.yaw_deg) if drop else (180.0, 0.0, 0.0))
         return LandingController(rule, drop_height=drop.height_m if drop else None)
+    lib = library_path(policy)
+    if lib is not None:
+        from felis.learning.landing.library import LibraryRule, load_library
+
+        return LandingController(LibraryRule(load_library(lib), drop.height_m if drop else None),
+                                 drop_height=drop.height_m if drop else None)
     from felis.learning.landing.policy import load_policy
 
     behaviour, _ = load_policy(shipped_policy() if policy == "shipped" else policy)
@@ -256,6 +285,14 @@ def batch_controller(spec, policy: str, drops: Sequence[Drop]):
 
     if policy in POLICIES or policy == "rules":
         return PerCat(spec, lambda b: make_policy(policy, drops[b]))
+    lib = library_path(policy)
+    if lib is not None:
+        from felis.learning.landing.designs import joint_speeds
+        from felis.learning.landing.library import LibraryBatch, load_library
+
+        n_ticks = max(int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops)
+        return LandingBatch(spec, [LibraryBatch(load_library(lib), [d.height_m for d in drops], n_ticks,
+                                                joint_speeds(spec))])
     from felis.learning.landing.policy import load_policy
 
     behaviour, _ = load_policy(shipped_policy() if policy == "shipped" else policy)

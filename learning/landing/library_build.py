@@ -1,0 +1,212 @@
+"""Making a landing motion library (`felis.learning.landing.library`): ``felis train landing-library``.
+
+Per drop height: (1) the per-drop optimum (`felis.learning.landing.optimum.optimise_all`, the shipped results'
+budget by default) for the attitudes of a Fibonacci grid of up axes (`fibonacci_ups`: ``grid`` points on the
+sphere, kept where the tilt is at most ``max_tilt_deg`` and u_y ≥ 0, the mirror images covering the rest);
+(2) every candidate (entries and their mirror images) tried on the probes, a denser Fibonacci grid
+(``probes`` points on the sphere, kept likewise), within `EVAL_RADIUS_DEG` of the candidate's attitude, batched.
+Checkpoints: the optimum's per drop (``WORKDIR/<h>m/optimum.jsonl``) and the probes' per height
+(``WORKDIR/<h>m/probes.npy``); ``resume`` goes on from them. Deterministic for a seed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from felis.errors import ParameterError
+from felis.learning.landing.library import EVAL_RADIUS_DEG, MotionLibrary, Shelf, angles_deg
+from felis.scenarios.drop import Drop
+
+GRID = 240
+PROBES = 1440
+MAX_TILT_DEG = 100.0  # the optimum lands almost nothing tilted further (docs/landing.md)
+CHUNK = 256  # rollouts per batch when trying the probes
+ROBUST_OFFSET_DEG = 6.0
+ROBUST_GENERATIONS = 8
+ROBUST_POPULATION = 8
+
+
+def fibonacci_ups(n: int, max_tilt_deg: float = 180.0) -> np.ndarray:
+    """Up axes (K, 3) of an ``n``-point Fibonacci sphere with tilt ≤ ``max_tilt_deg`` and u_y ≥ 0."""
+    if n < 1:
+        raise ParameterError(f"library: a grid needs at least 1 point, got {n}")
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = math.pi * (1.0 + math.sqrt(5.0)) * i
+    r = np.sqrt(1.0 - z * z)
+    u = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    keep = (np.degrees(np.arccos(np.clip(u[:, 2], -1, 1))) <= max_tilt_deg + 1e-9) & (u[:, 1] >= 0)
+    return u[keep]
+
+
+def up_drop(u: np.ndarray, height_m: float) -> Drop:
+    """The drop (yaw 0) whose up axis in the body frame is ``u``: roll = atan2(u_y, u_z), pitch = −asin(u_x)."""
+    return Drop(round(math.degrees(math.atan2(u[1], u[2])), 4), round(-math.degrees(math.asin(max(-1, min(1, u[0])))),
+                4), 0.0, float(height_m))
+
+
+def neighbours(u: np.ndarray, offset_deg: float) -> np.ndarray:
+    """``u`` and four attitudes ``offset_deg`` away from it, at right angles round it: (5, 3)."""
+    u = np.asarray(u, dtype=float)
+    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(u, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    t = math.radians(offset_deg)
+    return np.array([u] + [math.cos(t) * u + math.sin(t) * e for e in (e1, -e1, e2, -e2)])
+
+
+def robustify(sim, ups: np.ndarray, xs: np.ndarray, height_m: float, *, offset_deg: float = ROBUST_OFFSET_DEG,
+              generations: int = ROBUST_GENERATIONS, population: int = ROBUST_POPULATION, sigma: float = 0.15,
+              seed: int = 0, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """For each motion ``xs[i]`` searched for attitude ``ups[i]``: the motion near it that lands best over the
+    attitude and four neighbours ``offset_deg`` round it (`neighbours`): CMA-ES from ``xs[i]`` (σ ``sigma``), the
+    score the mean of the optimum's score (`felis.learning.landing.optimum.score`) over the five drops, every
+    entry's candidates in one batch per generation. Returns (motions (E, 55), how many of the five each lands, whether
+    each lands its own attitude)."""
+    import cma
+
+    from felis.learning.landing.optimum import evaluate
+
+    E = len(xs)
+    drops = [[up_drop(v, height_m) for v in neighbours(u, offset_deg)] for u in ups]
+    K = len(drops[0]) if drops else 0
+
+    def judge(cands: list[np.ndarray]) -> tuple:  # per entry (n, 55) → mean scores, landings, centre landed
+        flat_d = [d for i, c in enumerate(cands) for _ in range(len(c)) for d in drops[i]]
+        flat_x = np.concatenate([np.repeat(c, K, axis=0) for c in cands])
+        res = evaluate(sim, flat_d, flat_x)
+        sc = np.array([r[0] for r in res]).reshape(-1, K)
+        ld = np.array([r[1].landed for r in res]).reshape(-1, K)
+        return sc.mean(axis=1), ld.sum(axis=1), ld[:, 0]
+
+    best_x = np.array(xs, dtype=float)
+    best_s, best_n, best_c = judge([x[None] for x in best_x]) if E else (np.zeros(0), np.zeros(0, int),
+                                                                           np.zeros(0, bool))
+    es = [cma.CMAEvolutionStrategy(best_x[i], sigma, {"popsize": population, "bounds": [-1.0, 1.0], "verbose": -9,
+                                                      "seed": int(seed * 100003 + i * 101 + 7)}) for i in range(E)]
+    for g in range(generations):
+        active = [i for i in range(E) if best_n[i] < K]
+        if progress is not None:
+            progress(g, generations)
+        if not active:
+            break
+        asks = [np.array(es[i].ask()) for i in active]
+        sc, ld, lc = judge(asks)
+        for a, i in enumerate(active):
+            part = slice(a * population, (a + 1) * population)
+            es[i].tell(list(asks[a]), list(-sc[part]))
+            j = int(np.argmax(sc[part]))
+            if sc[part][j] > best_s[i]:
+                best_s[i], best_n[i], best_c[i], best_x[i] = sc[part][j], ld[part][j], lc[part][j], asks[a][j]
+    if progress is not None:
+        progress(generations, generations)
+    return best_x, best_n, best_c
+
+
+def try_probes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndarray, height_m: float,
+               progress: Callable[[int, int], None] | None = None, done: np.ndarray | None = None,
+               save: Callable[[np.ndarray], None] | None = None) -> np.ndarray:
+    """(P, 2E) bool: candidate c lands probe p, tried where they are within `EVAL_RADIUS_DEG` (module doc).
+    ``done``: (P, C ≤ 2E) results so far (1 lands, 0 not, −1 not yet tried: a checkpoint, perhaps of fewer
+    entries); ``save(results)`` after each batch."""
+    from felis.learning.landing.optimum import evaluate
+
+    cand_up, cand_x, _ = Shelf(height_m, shelf_up, shelf_x, np.ones(len(shelf_up), bool), probe_up,
+                               np.zeros((len(probe_up), 2 * len(shelf_up)), bool)).candidates()
+    res = np.full((len(probe_up), len(cand_up)), -1, dtype=np.int8)
+    if done is not None and done.ndim == 2 and done.shape[0] == len(probe_up) and done.shape[1] <= len(cand_up):
+        res[:, :done.shape[1]] = done
+    pairs = np.argwhere((angles_deg(probe_up, cand_up) <= EVAL_RADIUS_DEG) & (res < 0))  # (probe, candidate)
+    drops = [up_drop(u, height_m) for u in probe_up]
+    total = int(np.count_nonzero(angles_deg(probe_up, cand_up) <= EVAL_RADIUS_DEG))
+    for k in range(0, len(pairs), CHUNK):
+        part = pairs[k:k + CHUNK]
+        out = evaluate(sim, [drops[p] for p in part[:, 0]], cand_x[part[:, 1]])
+        res[part[:, 0], part[:, 1]] = [int(v.landed) for _, v in out]
+        if save is not None:
+            save(res)
+        if progress is not None:
+            progress(total - len(pairs) + k + len(part), total)
+    return res == 1
+
+
+def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, probes: int = PROBES,
+                  max_tilt_deg: float = MAX_TILT_DEG, generations: int = 30, population: int = 12,
+                  restarts: int = 1, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
+                  workdir: str | Path | None = None, resume: bool = False, command: str = "",
+                  robust_generations: int = ROBUST_GENERATIONS,
+                  progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
+    """The library (module doc); ``progress(stage, done, total)`` with stage ``"<h> m optimum"``, ``"<h> m
+    robust"`` or ``"<h> m probes"``. ``robust_generations`` 0: no robust stage."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.optimum import optimise_all
+
+    if not heights or any(not (isinstance(h, int | float) and math.isfinite(h) and h > 0) for h in heights):
+        raise ParameterError(f"library: heights must be positive numbers of metres, got {list(heights)}")
+    if probes < 1 or not 0 < max_tilt_deg <= 180:
+        raise ParameterError("library: probes ≥ 1 and a maximum tilt within (0, 180] degrees are needed")
+    ups = fibonacci_ups(grid, max_tilt_deg)
+    probe_up = fibonacci_ups(probes, max_tilt_deg)
+    shelves = []
+    for h in heights:
+        where = None if workdir is None else Path(workdir) / f"{h:g}m"
+        drops = [up_drop(u, h) for u in ups]
+        stage = f"{h:g} m optimum"
+        count, total = [0], len(drops)
+
+        def step(n, stage=stage, count=count, total=total):
+            count[0] += n
+            if progress is not None:
+                progress(stage, count[0], total)
+
+        best = optimise_all(drops, generations=generations, population=population, restarts=restarts, seed=seed,
+                            workers=workers, ray_address=ray_address, workdir=None if where is None else str(where),
+                            resume=resume, progress=step)
+        x = np.array([o.x for o in best])
+        landed = np.array([o.landed for o in best])
+        entry_up, entry_drops = ups, [o.drop.as_dict() for o in best]
+        sim = BatchLandingSim(nthread=workers)
+        try:
+            if robust_generations > 0 and landed.any():  # a robust twin of every entry that landed, beside it
+                rows = np.flatnonzero(landed)
+                ck = None if where is None else where / "robust.npz"
+                if resume and ck is not None and ck.is_file():
+                    with np.load(ck) as f:
+                        rx, rn, rc = f["x"], f["landed"], f["centre"]
+                else:
+                    rx, rn, rc = robustify(sim, ups[rows], x[rows], h, generations=robust_generations, seed=seed,
+                                       progress=None if progress is None else
+                                       (lambda d, t, h=h: progress(f"{h:g} m robust", d, t)))
+                    if ck is not None:
+                        np.savez(ck, x=rx, landed=rn, centre=rc)
+                new = np.flatnonzero(np.any(rx != x[rows], axis=1))  # a motion robust already has no twin
+                rows = rows[new]
+                entry_up = np.concatenate([ups, ups[rows]])
+                entry_drops = entry_drops + [entry_drops[i] for i in rows]
+                x = np.concatenate([x, rx[new]])
+                landed = np.concatenate([landed, rc[new]])
+            done, save = None, None
+            if where is not None:
+                ck = where / "probes.npy"
+                if resume and ck.is_file():
+                    done = np.load(ck)
+
+                def save(res, ck=ck):
+                    np.save(ck, res)
+            lands = try_probes(sim, entry_up, x, probe_up, h, done=done, save=save,
+                               progress=None if progress is None else
+                               (lambda d, t, h=h: progress(f"{h:g} m probes", d, t)))
+        finally:
+            sim.close()
+        shelves.append(Shelf(float(h), entry_up, x, landed, probe_up, lands, entry_drops))
+    meta = {"made_by": command,
+            "grid": {"sphere_points": grid, "probe_points": probes, "max_tilt_deg": max_tilt_deg},
+            "search": {"generations": generations, "population": population, "restarts": restarts, "seed": seed,
+                       "robust": {"generations": robust_generations, "population": ROBUST_POPULATION,
+                                  "offset_deg": ROBUST_OFFSET_DEG}}}
+    return MotionLibrary(shelves, meta=meta)

@@ -1,0 +1,185 @@
+"""The landing motion library (`felis.learning.landing.library`, `library_build`): the attitude the IMU gives,
+mirror images that land as their originals, the probes' vote, files read back and refused in one line, batched
+equal to sequential, a build that resumes to the same library, and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from felis.errors import ParameterError
+from felis.learning.landing.library import (
+    DEFAULT_LIBRARY,
+    MotionLibrary,
+    Shelf,
+    drop_up,
+    library_from_dict,
+    load_library,
+    mirror_motion,
+    mirror_up,
+    up_axis,
+)
+from felis.learning.landing.motion import DIMS, N_WAYPOINTS
+from felis.rotations import roll_pitch
+from felis.scenarios.drop import Drop, random_drops
+
+
+def _felis(*argv: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "felis", *argv], capture_output=True, text=True, timeout=timeout)
+
+
+def test_the_up_axis_is_what_the_imu_roll_and_pitch_give_and_ignores_yaw():
+    for d in random_drops(50, seed=4):
+        R = Rotation.from_euler("ZYX", [d.yaw_deg, d.pitch_deg, d.roll_deg], degrees=True)
+        want = R.inv().apply([0.0, 0.0, 1.0])
+        x, y, z, w = R.as_quat()
+        roll, pitch = roll_pitch((w, x, y, z))
+        assert np.allclose(up_axis(roll, pitch), want, atol=1e-12)
+        assert np.allclose(drop_up(d), want, atol=1e-12)
+        assert np.allclose(drop_up(Drop(d.roll_deg, d.pitch_deg, d.yaw_deg + 77.0, d.height_m)), want, atol=1e-12)
+
+
+def test_mirroring_flips_the_yaw_and_roll_angles_and_is_its_own_inverse():
+    x = np.random.default_rng(0).uniform(-1, 1, DIMS)
+    m = mirror_motion(x)
+    w, mw = x[:N_WAYPOINTS * 8].reshape(-1, 8), m[:N_WAYPOINTS * 8].reshape(-1, 8)
+    assert np.array_equal(mw[:, [0, 2, 4, 6]], w[:, [0, 2, 4, 6]]) and np.array_equal(mw[:, [1, 3, 5, 7]],
+                                                                                        -w[:, [1, 3, 5, 7]])
+    n = N_WAYPOINTS * 8
+    assert m[n] == x[n] and m[n + 2] == -x[n + 2] and m[n + 5] == -x[n + 5] and m[n + 3] == x[n + 3]
+    assert np.array_equal(mirror_motion(m), x)
+    assert np.array_equal(mirror_motion(np.stack([x, x]))[1], m)
+
+
+def test_a_mirrored_drop_with_the_mirrored_motion_lands_as_the_original():
+    """The cat is left-right symmetric: the shipped optimum's first landed 1 m drop and its mirror image."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.optimum import evaluate
+
+    doc = json.loads((DEFAULT_LIBRARY.parent / "landing_optimum-1m.json").read_text())
+    e = next(e for e in doc["drops"] if e["landed"] and abs(e["roll_deg"]) > 10)
+    d = Drop(e["roll_deg"], e["pitch_deg"], e["yaw_deg"], e["height_m"])
+    md = Drop(-d.roll_deg, d.pitch_deg, -d.yaw_deg, d.height_m)
+    assert np.allclose(drop_up(md), mirror_up(drop_up(d)))
+    sim = BatchLandingSim(nthread=1)
+    try:
+        (s0, v0), (s1, v1) = evaluate(sim, [d, md], np.array([e["motion_x"], mirror_motion(e["motion_x"])]))
+    finally:
+        sim.close()
+    assert v0.landed and v1.landed
+    assert abs(v0.tilt_deg - v1.tilt_deg) < 0.5 and abs(s0 - s1) < 0.01
+
+
+def _unit(deg_from_up: float, toward_y: float = 1.0) -> np.ndarray:
+    a = math.radians(deg_from_up)
+    return np.array([0.0, toward_y * math.sin(a), math.cos(a)])
+
+
+def _shelf(landed=(True, True), votes=True) -> Shelf:
+    x = np.random.default_rng(1).uniform(-1, 1, (2, DIMS))
+    probes = np.array([_unit(a) for a in (12.0, 13.0, 14.0)])
+    lands = np.zeros((3, 4), dtype=bool)
+    if votes:
+        lands[:, 0] = True  # entry 0 (at 10°) lands every probe; entry 1 (at 14°) none
+    return Shelf(1.0, np.array([_unit(10.0), _unit(14.0)]), x, np.array(landed), probes, lands)
+
+
+def test_the_probes_vote_for_the_motion_that_lands_near_the_attitude_not_the_nearest_one():
+    s = _shelf()
+    x, c = s.choose(_unit(13.5))
+    assert c == 0 and np.array_equal(x, s.x[0])  # the nearest entry is 1 (at 14°), but 0 lands the probes
+    x, c = s.choose(_unit(13.5, -1.0))  # the mirror image of that attitude: the mirror image of that motion
+    assert c == 1 and np.array_equal(x, mirror_motion(s.x[0]))  # candidate 1: entry 0's mirror image
+    x, c = s.choose(_unit(13.5), exclude=None, radius_deg=0.1)  # no probe near: the nearest entry that landed
+    assert c == 2 and np.array_equal(x, s.x[1])
+    x, c = _shelf(landed=(True, False)).choose(_unit(13.5), radius_deg=0.1)
+    assert c == 0
+    x, c = _shelf(votes=False).choose(_unit(13.9))
+    assert c == 2
+
+
+def test_a_library_reads_back_as_written_and_picks_the_nearer_height():
+    lib = MotionLibrary([_shelf(), Shelf(3.0, *[getattr(_shelf(), k) for k in ("up", "x", "landed", "probe_up",
+                                                                                "lands")])], meta={"made_by": "t"})
+    back = library_from_dict(json.loads(json.dumps(lib.as_dict())))
+    for a, b in zip(lib.shelves, back.shelves, strict=True):
+        assert a.height_m == b.height_m and np.array_equal(a.lands, b.lands) and np.array_equal(a.landed, b.landed)
+        assert np.allclose(a.up, b.up, atol=1e-6) and np.array_equal(a.x, b.x)
+    assert back.shelf(1.2).height_m == 1.0 and back.shelf(2.0).height_m == 3.0 and back.shelf(8).height_m == 3.0
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d.update(format="x"), "not a landing motion library"),
+    (lambda d: d.update(version=9), "library version 9 is not supported"),
+    (lambda d: d.update(shelves=[]), "'shelves' must be a non-empty list"),
+    (lambda d: d["shelves"][0].update(height_m=-1), "shelf 0: height_m must be a positive number"),
+    (lambda d: d["shelves"][0]["entries"][1].update(motion_x=[0.0] * 3), "shelf 0, entry 1: motion_x must be 55"),
+    (lambda d: d["shelves"][0]["entries"][0].update(up=[0.0, 0.0, 2.0]), "every 'up' must be a unit vector"),
+    (lambda d: d["shelves"][0]["probes"][2].update(lands=[7]), "shelf 0, probe 2: lands must be candidate ids 0…3"),
+    (lambda d: d.update(sigma_deg=0), "radius_deg and sigma_deg must be positive"),
+])
+def test_bad_library_files_are_one_line_naming_the_file(tmp_path, edit, message):
+    doc = MotionLibrary([_shelf()]).as_dict()
+    edit(doc)
+    path = tmp_path / "lib.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ParameterError, match=message) as e:
+        load_library(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+    path.write_text("{")
+    with pytest.raises(ParameterError, match="lib.json"):
+        load_library(path)
+
+
+def test_the_shipped_library_batched_equals_sequential():
+    """The same drops through `felis.loop` one at a time (`LibraryRule` in the landing controller) and batched
+    (`LibraryBatch`): the same verdicts, the same motion chosen from the IMU."""
+    from felis.learning.landing.evaluate import run_drops, run_drops_sequential
+
+    drops = [*random_drops(3, seed=1, heights=1.0), Drop(30.0, -20.0, 45.0, 3.0)]
+    a = run_drops(drops, "library", workers=1)
+    b = run_drops_sequential(drops, "library", workers=1)
+    for x, y in zip(a, b, strict=True):
+        assert x.landed == y.landed and x.why == y.why
+        assert abs(x.touchdown_s - y.touchdown_s) < 1e-9 and abs(x.tilt_deg - y.tilt_deg) < 1e-3
+
+
+def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
+    from felis.learning.landing.library_build import build_library, fibonacci_ups
+
+    kw = dict(heights=(1.0,), grid=30, probes=80, max_tilt_deg=60.0, generations=1, population=2, restarts=0,
+              workers=1, robust_generations=1)
+    assert len(fibonacci_ups(30, 60.0)) >= 2
+    one = build_library(**kw, workdir=tmp_path / "a")
+    ck = tmp_path / "a" / "1m" / "probes.npy"
+    res = np.load(ck)  # (probes, candidates): 1 lands, 0 does not, -1 not tried (too far apart)
+    tried = np.argwhere(res >= 0)
+    assert len(tried) > 8 and (tmp_path / "a" / "1m" / "robust.npz").is_file()
+    res[tuple(tried[len(tried) // 2:].T)] = -1  # as if killed halfway through the probes
+    np.save(ck, res)
+    again = build_library(**kw, workdir=tmp_path / "a", resume=True)
+    s, t = one.shelves[0], again.shelves[0]
+    assert np.array_equal(s.x, t.x) and np.array_equal(s.lands, t.lands) and np.array_equal(s.landed, t.landed)
+    assert s.lands.shape == (len(fibonacci_ups(80, 60.0)), 2 * len(s.up))
+    fresh = build_library(**kw)  # no checkpoints at all: the same library
+    assert np.array_equal(fresh.shelves[0].x, s.x) and np.array_equal(fresh.shelves[0].lands, s.lands)
+
+
+def test_cli_builds_a_library_that_eval_runs(tmp_path):
+    out = tmp_path / "lib.json"
+    r = _felis("train", "landing-library", "--out", str(out), "--heights", "1", "--grid", "12", "--probes", "20",
+               "--max-tilt", "60", "--generations", "1", "--population", "2", "--restarts", "0", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    assert f"library: {out}" in r.stdout and "1 m:" in r.stdout
+    assert json.loads(out.read_text())["made_by"].startswith("felis train landing-library")
+    r = _felis("eval", "landing", "--drops", "random:2", "--policy", str(out), "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["total"] == 2
+    r = _felis("train", "landing-library", "--out", str(tmp_path / "x.npz"))
+    assert r.returncode != 0 and "must end in .json" in r.stderr
