@@ -28,7 +28,7 @@ def register(sub) -> None:
     demo.set_defaults(func=cmd_demo)
 
 
-DEMO_DROP = (1.0, -50.0, -30.0, 0.0)  # height m, roll, pitch, yaw °: inside what the shipped policy lands
+DEMO_DROP = (1.0, -50.0, -30.0, 0.0)  # height m, roll, pitch, yaw °: inside what the shipped policies land
 HARD_MOTION = Path(__file__).resolve().parents[2] / "learning" / "weights" / "landing_hard_drop.json"
 HARD_DROP = (3.0, 120.0, 0.0, 0.0)  # the drop that motion was searched for (tilted 120°)
 
@@ -36,8 +36,8 @@ HARD_DROP = (3.0, 120.0, 0.0, 0.0)  # the drop that motion was searched for (til
 def cmd_demo(args) -> int:
     """Servo-in-the-loop: the cat stands up through the virtual Dynamixel bus backed by MuJoCo (the
     whole hardware code path: DynamixelRobot, SDK, pseudo-terminal, byte-level servos, physics);
-    then the cat dropped tilted from 1 m under the landing controller and the shipped evolved policy
-    (seed 000), in MuJoCo, with video; then a hard drop, tilted 120° from 3 m, under the searched whole-body
+    then the cat dropped tilted from 1 m under the landing controller and the shipped motion library
+    (seed 000, issue 21), in MuJoCo, with video; then a hard drop, tilted 120° from 3 m, under the searched whole-body
     motion for it; then the arm tracking a figure eight with the learned IK pipeline
     (seed 001), with video; then the standing cat pushed, with the balance monitor's margin and alarm
     plotted (seed 004)."""
@@ -92,8 +92,9 @@ def _episodes(run_dir: Path, no_video: bool):
                       rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
                       meta={"demo": True})),
         ("[bold]felis demo 2/5[/]: the cat dropped from 1 m tilted 56° (roll -50°, pitch -30°) under the "
-         "landing controller running the shipped evolved policy (seed 000; MuJoCo). Held still, it lands "
-         "on its back from this drop; see docs/landing.md for where the policy fails",
+         "landing controller running the shipped motion library (seed 000; MuJoCo): at release it reads its "
+         "attitude from the IMU and runs the whole-body motion that lands most often near it. Held still, it "
+         "lands on its back from this drop; see docs/landing.md for where landing fails",
          # 2.5 s: the 0.45 s fall, the bounce, and the cat settled on four feet (the verdict: touchdown + 0.5 s)
          lambda: dict(robot="cat", controller="landing", duration=2.5,
                       drop=DEMO_DROP, controller_options={"policy": None, "drop_height": DEMO_DROP[0]},

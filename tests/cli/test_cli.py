@@ -272,7 +272,9 @@ def test_render_gif(tmp_path):
                  "--size", "160x120", "--fps", "20", "--out", "v.gif", "--json"))
     res = json.loads(r.stdout)
     assert res["files"] == {"video": "v.gif"}
-    assert res["landing"]["first_contact_s"] == pytest.approx(math.sqrt(2 * 0.3 / G), rel=0.02)
+    # the landing controller (the default for a dropped cat) moves the legs to its touchdown posture while the
+    # cat falls, so the first foot meets the floor a few milliseconds after free fall from 0.3 m would
+    assert res["landing"]["first_contact_s"] == pytest.approx(math.sqrt(2 * 0.3 / G), rel=0.05)
     data = (tmp_path / "v.gif").read_bytes()
     assert data[:6] in (b"GIF89a", b"GIF87a")
     assert tree(tmp_path) == {"v.gif"}
@@ -331,7 +333,7 @@ def test_demo(tmp_path):
     info = log_info(run / "drop.mcap")
     assert info["robot"] == "cat" and info["complete"] is True
     landing = info["summary"]["landing"]
-    assert landing["on_feet"] is True and landing["tilt_deg"] < 15  # tilted 56°, the shipped policy rights it
+    assert landing["on_feet"] is True and landing["tilt_deg"] < 15  # tilted 56°, the motion library rights it
     text = words(r.stdout)
     verdicts = re.findall(r"landed (on its feet|on its back|on its side|upright but not on its feet)", text)
     assert verdicts == ["on its feet", "on its feet"], r.stdout  # the 56° drop and the hard drop

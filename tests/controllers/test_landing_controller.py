@@ -167,8 +167,9 @@ def test_cli_run_landing_drop_through_the_virtual_bus(tmp_path, policy):
 
 
 def test_cli_run_landing_shipped_policy_through_the_virtual_bus(tmp_path):
-    """The shipped policy (the default) through the whole hardware path rights the demo's drop (1 m, tilted
-    56°); the same drop held still ends on its back (test_landing_eval)."""
+    """The default policy (the shipped motion library) through the whole hardware path rights the demo's drop
+    (1 m, tilted 56°): the attitude from the emulated IMU at release, the drop height from --height; the same drop
+    held still ends on its back (test_landing_eval)."""
     from felis.cli.demo import DEMO_DROP
 
     h, r, p, y = (str(v) for v in DEMO_DROP)

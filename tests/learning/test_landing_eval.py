@@ -234,20 +234,24 @@ def test_summarise_and_run_drops_in_order():
     assert second["roll_deg"] == 180.0
 
 
-def test_shipped_policy_rights_the_demo_drop_that_passive_does_not():
-    """The shipped policy (learning/weights/landing.npz) against holding still, on the demo's drop (1 m,
-    tilted 56°) and on a drop it cannot right (upside down): what the policy adds, and where it stops."""
+def test_shipped_policies_right_the_demo_drop_that_passive_does_not():
+    """The shipped motion library (the default) and the shipped nets (learning/weights/landing.npz) against holding
+    still, on the demo's drop (1 m, tilted 56°) and on a drop none can right (upside down): what the policies add,
+    and where they stop."""
     from felis.cli.demo import DEMO_DROP
     from felis.learning.landing.evaluate import default_policy, shipped_policy
+    from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
     from felis.learning.landing.policy import load_policy
 
-    assert default_policy() == "shipped" and check_policy("shipped") == "shipped"
+    assert default_policy() == "library" and check_policy("library") == "library"
+    assert check_policy("shipped") == "shipped"
     load_policy(shipped_policy())  # a valid policy file
+    assert [s.height_m for s in load_library(DEFAULT_LIBRARY).shelves] == [1.0, 3.0]
     h, r, p, y = DEMO_DROP
     drops = [Drop(r, p, y, h), Drop(180.0, 0.0, 0.0, 1.0)]
-    shipped, passive = (run_drops(drops, pol, workers=1) for pol in ("shipped", "passive"))
-    assert shipped[0].landed and not passive[0].landed, (shipped[0].why, passive[0].why)
-    assert not shipped[1].landed and not passive[1].landed  # upside down from 1 m: no XL330 cat turns 150°
+    library, shipped, passive = (run_drops(drops, pol, workers=1) for pol in ("library", "shipped", "passive"))
+    assert library[0].landed and shipped[0].landed and not passive[0].landed, (library[0].why, passive[0].why)
+    assert not any(o[1].landed for o in (library, shipped, passive))  # upside down from 1 m: no XL330 cat turns 150°
 
 
 # ----------------------------------------------------------------------------------- the CLI
@@ -287,7 +291,7 @@ def test_cli_default_policy_and_text(capsys):
     from felis.learning.landing.evaluate import default_policy
 
     args = _args(["--drops", "random:2", "--workers", "1"])
-    assert args.policy is None and args.height is None  # the shipped policy when there is one, else passive
+    assert args.policy is None and args.height is None  # the shipped library if any, else the nets, else passive
     assert cmd_eval_landing(args) == 0
     text = capsys.readouterr().out
     assert text.startswith(f"2 drops from 1 m (random:2, seed 0), policy {default_policy()}:")
