@@ -44,7 +44,8 @@ SUBPACKAGES = ("felis.cli", "felis.scenarios", "felis.logs", "felis.drivers", "f
                "felis.learning", "felis.calib", "felis.testing")
 # each skill's inference side: what controllers may import (numpy only; `infer` holds the nets' numpy forward
 # passes and weight readers that the solver and the estimator share with training)
-INFERENCE = ("felis.learning.landing.policy", "felis.learning.landing.motion", "felis.learning.ik.solver",
+INFERENCE = ("felis.learning.landing.policy", "felis.learning.landing.motion", "felis.learning.landing.library",
+             "felis.learning.ik.solver",
              "felis.learning.ik.infer", "felis.learning.phase.estimator", "felis.learning.phase.infer",
              "felis.learning.balance.selector")
 HEAVY = ("torch", "mujoco", "dynamixel_sdk", "ray", "matplotlib")
