@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.learning.landing.motion import DIMS, DT, N_POSTURE, N_WAYPOINTS, motion_table
+from felis.learning.landing.motion import DIMS, DT, N_WAYPOINTS, motion_table
 from felis.rotations import G
 
 FORMAT = "felis-landing-library"
@@ -74,8 +74,7 @@ def mirror_motion(x: np.ndarray) -> np.ndarray:
     n = N_WAYPOINTS * 8
     x[..., :n] = (x[..., :n].reshape(*x.shape[:-1], N_WAYPOINTS, 8) * _MIRROR_WAYPOINT).reshape(*x.shape[:-1], n)
     x[..., n + 2] *= -1.0  # front pair's shared roll
-    x[..., n + 5] *= -1.0  # hind pair's
-    assert DIMS == n + 1 + N_POSTURE
+    x[..., n + 5] *= -1.0  # hind pair's (the posture: front pitch, roll, splay, hind pitch, roll, splay)
     return x
 
 
@@ -328,19 +327,16 @@ class LibraryBatch:
         self.heights = np.asarray(heights, dtype=float)
         self.n_ticks, self.speed = int(n_ticks), speed
         self.tables: np.ndarray | None = None
-        self.chosen: np.ndarray | None = None  # (B, 55)
 
     def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
         if self.tables is None:
             self.tables = np.zeros((len(self.heights), self.n_ticks, 12))
-            self.chosen = np.zeros((len(self.heights), DIMS))
         first = rows[np.asarray(t) < DT / 2]
         if first.size:
             sel = np.isin(rows, first)
             up = up_axis(it[sel, 4] * math.pi, it[sel, 5] * math.pi / 2)
             for r, u in zip(rows[sel], up, strict=True):
                 x = self.library.choose(u, self.heights[r])
-                self.chosen[r] = x
                 self.tables[r] = motion_table(x, self.heights[r], self.speed, self.n_ticks)
         k = np.clip(np.rint(np.asarray(t) / DT).astype(int), 0, self.n_ticks - 1)
         return self.tables[rows, k]

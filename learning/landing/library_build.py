@@ -121,9 +121,10 @@ def try_probes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndar
     res = np.full((len(probe_up), len(cand_up)), -1, dtype=np.int8)
     if done is not None and done.ndim == 2 and done.shape[0] == len(probe_up) and done.shape[1] <= len(cand_up):
         res[:, :done.shape[1]] = done
-    pairs = np.argwhere((angles_deg(probe_up, cand_up) <= EVAL_RADIUS_DEG) & (res < 0))  # (probe, candidate)
+    near = angles_deg(probe_up, cand_up) <= EVAL_RADIUS_DEG
+    pairs = np.argwhere(near & (res < 0))  # (probe, candidate) still to try
     drops = [up_drop(u, height_m) for u in probe_up]
-    total = int(np.count_nonzero(angles_deg(probe_up, cand_up) <= EVAL_RADIUS_DEG))
+    total = int(np.count_nonzero(near))
     for k in range(0, len(pairs), CHUNK):
         part = pairs[k:k + CHUNK]
         out = evaluate(sim, [drops[p] for p in part[:, 0]], cand_x[part[:, 1]])

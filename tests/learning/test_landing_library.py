@@ -96,7 +96,7 @@ def test_the_probes_vote_for_the_motion_that_lands_near_the_attitude_not_the_nea
     assert c == 0 and np.array_equal(x, s.x[0])  # the nearest entry is 1 (at 14°), but 0 lands the probes
     x, c = s.choose(_unit(13.5, -1.0))  # the mirror image of that attitude: the mirror image of that motion
     assert c == 1 and np.array_equal(x, mirror_motion(s.x[0]))  # candidate 1: entry 0's mirror image
-    x, c = s.choose(_unit(13.5), exclude=None, radius_deg=0.1)  # no probe near: the nearest entry that landed
+    x, c = s.choose(_unit(13.5), radius_deg=0.1)  # no probe near: the nearest entry that landed
     assert c == 2 and np.array_equal(x, s.x[1])
     x, c = _shelf(landed=(True, False)).choose(_unit(13.5), radius_deg=0.1)
     assert c == 0
