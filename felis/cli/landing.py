@@ -64,7 +64,7 @@ def register_train(train_sub) -> None:
     t.set_defaults(func=cmd_train_landing)
 
     from felis.learning.landing.library import DEFAULT_LIBRARY
-    from felis.learning.landing.library_build import GRID, MAX_TILT_DEG, PROBES
+    from felis.learning.landing.library_build import FILL_GENERATIONS, GRID, MAX_TILT_DEG, PROBES
 
     b = train_sub.add_parser("landing-library", help="the landing motion library: the per-drop optimum on a grid of "
                              "start attitudes, then which motion lands each probe attitude (docs/landing.md)")
@@ -81,6 +81,9 @@ def register_train(train_sub) -> None:
     b.add_argument("--generations", type=int, default=30, help="CMA-ES generations per start (default 30)")
     b.add_argument("--population", type=int, default=12, help="CMA-ES population (default 12)")
     b.add_argument("--restarts", type=int, default=1, help="further CMA-ES starts (default 1)")
+    b.add_argument("--fill-generations", type=int, default=FILL_GENERATIONS, metavar="N",
+                   help="CMA-ES generations of a new motion for each probe that no motion lands, from the nearest "
+                   f"(0: none; default {FILL_GENERATIONS})")
     b.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
     b.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the library)")
     b.add_argument("--resume", action="store_true", help="continue from the checkpoints in --workdir")
@@ -189,6 +192,8 @@ def cmd_train_library(args) -> int:
         raise ParameterError(f"{out}: a landing motion library file must end in .json")
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
+    if args.fill_generations < 0:
+        raise ParameterError(f"--fill-generations must be ≥ 0, got {args.fill_generations}")
     check_target(out, "landing motion library", ParameterError)
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
@@ -209,11 +214,12 @@ def cmd_train_library(args) -> int:
         lib = build_library(args.heights, grid=args.grid, probes=args.probes, max_tilt_deg=args.max_tilt,
                             generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address, workdir=workdir,
-                            resume=args.resume, command=command, progress=progress)
+                            resume=args.resume, command=command, fill_generations=args.fill_generations,
+                            progress=progress)
     write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
     for s in lib.shelves:
-        print(f"{s.height_m:g} m: {int(s.landed.sum())} of {len(s.landed)} entries (the optimum and its robust "
-              f"twins) land their own attitude; "
+        print(f"{s.height_m:g} m: {int(s.landed.sum())} of {len(s.landed)} entries (the optimum, its robust "
+              f"twins, the holes' fills) land their own attitude; "
               f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion")
     print(f"library: {out}")
     return 0

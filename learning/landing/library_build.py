@@ -3,10 +3,12 @@
 Per drop height: (1) the per-drop optimum (`felis.learning.landing.optimum.optimise_all`, the shipped results'
 budget by default) for the attitudes of a Fibonacci grid of up axes (`fibonacci_ups`: ``grid`` points on the
 sphere, kept where the tilt is at most ``max_tilt_deg`` and u_y ≥ 0, the mirror images covering the rest);
-(2) every candidate (entries and their mirror images) tried on the probes, a denser Fibonacci grid
-(``probes`` points on the sphere, kept likewise), within `EVAL_RADIUS_DEG` of the candidate's attitude, batched.
-Checkpoints: the optimum's per drop (``WORKDIR/<h>m/optimum.jsonl``) and the probes' per height
-(``WORKDIR/<h>m/probes.npy``); ``resume`` goes on from them. Deterministic for a seed.
+(2) a robust twin of each entry that landed (`robustify`); (3) every candidate (entries and their mirror images)
+tried on the probes, a denser Fibonacci grid (``probes`` points on the sphere, kept likewise), within
+`EVAL_RADIUS_DEG` of the candidate's attitude, batched; (4) the fill: a new entry at each probe that no candidate
+lands, searched from the nearest candidate (`fill_holes`), then its tries on the probes. Checkpoints per height
+in ``WORKDIR/<h>m/``: ``optimum.jsonl`` (per drop), ``robust.npz``, ``probes.npy``, ``fill.npz``; ``resume`` goes
+on from them. Deterministic for a seed.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ CHUNK = 256  # rollouts per batch when trying the probes
 ROBUST_OFFSET_DEG = 6.0
 ROBUST_GENERATIONS = 8
 ROBUST_POPULATION = 8
+FILL_GENERATIONS = ROBUST_GENERATIONS
+FILL_OFFSET_DEG = 3.0  # a hole's neighbours (the probes are ~5° apart at the default density)
 
 
 def fibonacci_ups(n: int, max_tilt_deg: float = 180.0) -> np.ndarray:
@@ -119,8 +123,9 @@ def try_probes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndar
     cand_up, cand_x, _ = Shelf(height_m, shelf_up, shelf_x, np.ones(len(shelf_up), bool), probe_up,
                                np.zeros((len(probe_up), 2 * len(shelf_up)), bool)).candidates()
     res = np.full((len(probe_up), len(cand_up)), -1, dtype=np.int8)
-    if done is not None and done.ndim == 2 and done.shape[0] == len(probe_up) and done.shape[1] <= len(cand_up):
-        res[:, :done.shape[1]] = done
+    if done is not None and done.ndim == 2 and done.shape[0] == len(probe_up):
+        c = min(done.shape[1], len(cand_up))  # a checkpoint of more candidates: the fill stage's (same order)
+        res[:, :c] = done[:, :c]
     near = angles_deg(probe_up, cand_up) <= EVAL_RADIUS_DEG
     pairs = np.argwhere(near & (res < 0))  # (probe, candidate) still to try
     drops = [up_drop(u, height_m) for u in probe_up]
@@ -136,14 +141,33 @@ def try_probes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndar
     return res == 1
 
 
+def fill_holes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndarray, lands: np.ndarray,
+               height_m: float, *, generations: int = ROBUST_GENERATIONS, offset_deg: float = FILL_OFFSET_DEG,
+               seed: int = 0, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, ...]:
+    """New entries for the probes that no candidate lands (the holes): for each, `robustify` from the nearest
+    candidate's motion (an entry or a mirror image) over the hole and four attitudes ``offset_deg`` round it.
+    Returns (indices of the holes, their motions (H, 55), how many of the five each lands, whether each lands its
+    hole); the caller keeps those that land something."""
+    cand_up, cand_x, _ = Shelf(height_m, shelf_up, shelf_x, np.ones(len(shelf_up), bool), probe_up,
+                               lands).candidates()
+    holes = np.flatnonzero(~lands.any(axis=1))
+    if not holes.size:
+        return holes, np.zeros((0, shelf_x.shape[1])), np.zeros(0, int), np.zeros(0, bool)
+    start = cand_x[np.argmin(angles_deg(probe_up[holes], cand_up), axis=1)]
+    x, n, c = robustify(sim, probe_up[holes], start, height_m, offset_deg=offset_deg, generations=generations,
+                        seed=seed + 1, progress=progress)
+    return holes, x, n, c
+
+
 def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, probes: int = PROBES,
                   max_tilt_deg: float = MAX_TILT_DEG, generations: int = 30, population: int = 12,
                   restarts: int = 1, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
                   workdir: str | Path | None = None, resume: bool = False, command: str = "",
-                  robust_generations: int = ROBUST_GENERATIONS,
+                  robust_generations: int = ROBUST_GENERATIONS, fill_generations: int = FILL_GENERATIONS,
                   progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """The library (module doc); ``progress(stage, done, total)`` with stage ``"<h> m optimum"``, ``"<h> m
-    robust"`` or ``"<h> m probes"``. ``robust_generations`` 0: no robust stage."""
+    robust"``, ``"<h> m probes"`` or ``"<h> m fill"``. ``robust_generations`` 0: no robust stage;
+    ``fill_generations`` > 0: fill the holes (`fill_holes`), then try the new entries on the probes."""
     from felis.learning.landing.evaluate import BatchLandingSim
     from felis.learning.landing.optimum import optimise_all
 
@@ -202,6 +226,27 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
             lands = try_probes(sim, entry_up, x, probe_up, h, done=done, save=save,
                                progress=None if progress is None else
                                (lambda d, t, h=h: progress(f"{h:g} m probes", d, t)))
+            if fill_generations > 0:  # new entries where no candidate lands a probe, then their probes
+                ck = None if where is None else where / "fill.npz"
+                if resume and ck is not None and ck.is_file():
+                    with np.load(ck) as f:
+                        holes, fx, fn, fc = f["holes"], f["x"], f["landed"], f["centre"]
+                else:
+                    holes, fx, fn, fc = fill_holes(sim, entry_up, x, probe_up, lands, h,
+                                                   generations=fill_generations, seed=seed,
+                                                   progress=None if progress is None else
+                                                   (lambda d, t, h=h: progress(f"{h:g} m fill", d, t)))
+                    if ck is not None:
+                        np.savez(ck, holes=holes, x=fx, landed=fn, centre=fc)
+                keep = fn > 0
+                entry_up = np.concatenate([entry_up, probe_up[holes[keep]]])
+                entry_drops = entry_drops + [up_drop(u, h).as_dict() for u in probe_up[holes[keep]]]
+                x = np.concatenate([x, fx[keep]])
+                landed = np.concatenate([landed, fc[keep]])
+                again = done if done is not None and done.shape[1] > lands.shape[1] else lands.astype(np.int8)
+                lands = try_probes(sim, entry_up, x, probe_up, h, done=again, save=save,
+                                   progress=None if progress is None else
+                                   (lambda d, t, h=h: progress(f"{h:g} m probes", d, t)))
         finally:
             sim.close()
         shelves.append(Shelf(float(h), entry_up, x, landed, probe_up, lands, entry_drops))
@@ -209,5 +254,7 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
             "grid": {"sphere_points": grid, "probe_points": probes, "max_tilt_deg": max_tilt_deg},
             "search": {"generations": generations, "population": population, "restarts": restarts, "seed": seed,
                        "robust": {"generations": robust_generations, "population": ROBUST_POPULATION,
-                                  "offset_deg": ROBUST_OFFSET_DEG}}}
+                                  "offset_deg": ROBUST_OFFSET_DEG},
+                       **({"fill": {"generations": fill_generations, "population": ROBUST_POPULATION,
+                                    "offset_deg": FILL_OFFSET_DEG}} if fill_generations > 0 else {})}}
     return MotionLibrary(shelves, meta=meta)
