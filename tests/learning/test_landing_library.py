@@ -153,7 +153,7 @@ def test_the_shipped_library_batched_equals_sequential():
 def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
     from felis.learning.landing.library_build import build_library, fibonacci_ups
 
-    kw = dict(heights=(1.0,), grid=30, probes=80, max_tilt_deg=60.0, generations=1, population=2, restarts=0,
+    kw = dict(heights=(1.0,), grid=30, probes=50, max_tilt_deg=60.0, generations=1, population=2, restarts=0,
               workers=1, robust_generations=1, fill_generations=1)
     assert len(fibonacci_ups(30, 60.0)) >= 2
     one = build_library(**kw, workdir=tmp_path / "a")
@@ -169,7 +169,7 @@ def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
     again = build_library(**kw, workdir=tmp_path / "a", resume=True)
     s, t = one.shelves[0], again.shelves[0]
     assert np.array_equal(s.x, t.x) and np.array_equal(s.lands, t.lands) and np.array_equal(s.landed, t.landed)
-    assert s.lands.shape == (len(fibonacci_ups(80, 60.0)), 2 * len(s.up))
+    assert s.lands.shape == (len(fibonacci_ups(50, 60.0)), 2 * len(s.up))
     assert len(s.up) > len(fibonacci_ups(30, 60.0))  # twins or fills beside the grid's entries
     fresh = build_library(**kw)  # no checkpoints at all: the same library
     assert np.array_equal(fresh.shelves[0].x, s.x) and np.array_equal(fresh.shelves[0].lands, s.lands)
@@ -178,7 +178,8 @@ def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
 def test_cli_builds_a_library_that_eval_runs(tmp_path):
     out = tmp_path / "lib.json"
     r = _felis("train", "landing-library", "--out", str(out), "--heights", "1", "--grid", "12", "--probes", "20",
-               "--max-tilt", "60", "--generations", "1", "--population", "2", "--restarts", "0", "--workers", "1")
+               "--max-tilt", "60", "--generations", "1", "--population", "2", "--restarts", "0", "--workers", "1",
+               "--fill-generations", "1")
     assert r.returncode == 0, r.stderr
     assert f"library: {out}" in r.stdout and "1 m:" in r.stdout
     assert json.loads(out.read_text())["made_by"].startswith("felis train landing-library")
