@@ -64,7 +64,7 @@ def register_train(train_sub) -> None:
     t.set_defaults(func=cmd_train_landing)
 
     from felis.learning.landing.library import DEFAULT_LIBRARY
-    from felis.learning.landing.library_build import FILL_GENERATIONS, GRID, MAX_TILT_DEG, PROBES
+    from felis.learning.landing.library_build import FILL_GENERATIONS, FILL_ROUNDS, GRID, MAX_TILT_DEG, PROBES
 
     b = train_sub.add_parser("landing-library", help="the landing motion library: the per-drop optimum on a grid of "
                              "start attitudes, then which motion lands each probe attitude (docs/landing.md)")
@@ -84,6 +84,9 @@ def register_train(train_sub) -> None:
     b.add_argument("--fill-generations", type=int, default=FILL_GENERATIONS, metavar="N",
                    help="CMA-ES generations of a new motion for each probe that no motion lands, from the nearest "
                    f"(0: none; default {FILL_GENERATIONS})")
+    b.add_argument("--fill-rounds", type=int, default=FILL_ROUNDS, metavar="N",
+                   help="rounds of the fill: the first for the probes no motion lands, the next for those where the "
+                   f"choice, their own vote left out, picks one that fails (default {FILL_ROUNDS})")
     b.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
     b.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the library)")
     b.add_argument("--resume", action="store_true", help="continue from the checkpoints in --workdir")
@@ -192,8 +195,9 @@ def cmd_train_library(args) -> int:
         raise ParameterError(f"{out}: a landing motion library file must end in .json")
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
-    if args.fill_generations < 0:
-        raise ParameterError(f"--fill-generations must be ≥ 0, got {args.fill_generations}")
+    if args.fill_generations < 0 or args.fill_rounds < 1:
+        raise ParameterError(f"--fill-generations must be ≥ 0 and --fill-rounds ≥ 1, got {args.fill_generations} "
+                             f"and {args.fill_rounds}")
     check_target(out, "landing motion library", ParameterError)
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
@@ -215,6 +219,7 @@ def cmd_train_library(args) -> int:
                             generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address, workdir=workdir,
                             resume=args.resume, command=command, fill_generations=args.fill_generations,
+                            fill_rounds=args.fill_rounds,
                             progress=progress)
     write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
     for s in lib.shelves:

@@ -6,9 +6,10 @@ sphere, kept where the tilt is at most ``max_tilt_deg`` and u_y ≥ 0, the mirro
 (2) a robust twin of each entry that landed (`robustify`); (3) every candidate (entries and their mirror images)
 tried on the probes, a denser Fibonacci grid (``probes`` points on the sphere, kept likewise), within
 `EVAL_RADIUS_DEG` of the candidate's attitude, batched; (4) the fill: a new entry at each probe that no candidate
-lands, searched from the nearest candidate (`fill_holes`), then its tries on the probes. Checkpoints per height
-in ``WORKDIR/<h>m/``: ``optimum.jsonl`` (per drop), ``robust.npz``, ``probes.npy``, ``fill.npz``; ``resume`` goes
-on from them. Deterministic for a seed.
+lands, searched from the nearest candidate (`fill`, `fill_targets`), then its tries on the probes; further rounds
+(``fill_rounds``) do the same for the probes where the choice, their own vote left out, picks a motion that fails.
+Checkpoints per height in ``WORKDIR/<h>m/``: ``optimum.jsonl`` (per drop), ``robust.npz``, ``probes.npy``,
+``fill.npz`` (``fill2.npz``…); ``resume`` goes on from them. Deterministic for a seed.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ ROBUST_OFFSET_DEG = 6.0
 ROBUST_GENERATIONS = 8
 ROBUST_POPULATION = 8
 FILL_GENERATIONS = ROBUST_GENERATIONS
+FILL_ROUNDS = 1
 FILL_OFFSET_DEG = 3.0  # a hole's neighbours (the probes are ~5° apart at the default density)
 
 
@@ -141,22 +143,31 @@ def try_probes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndar
     return res == 1
 
 
-def fill_holes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndarray, lands: np.ndarray,
-               height_m: float, *, generations: int = ROBUST_GENERATIONS, offset_deg: float = FILL_OFFSET_DEG,
-               seed: int = 0, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, ...]:
-    """New entries for the probes that no candidate lands (the holes): for each, `robustify` from the nearest
-    candidate's motion (an entry or a mirror image) over the hole and four attitudes ``offset_deg`` round it.
-    Returns (indices of the holes, their motions (H, 55), how many of the five each lands, whether each lands its
-    hole); the caller keeps those that land something."""
-    cand_up, cand_x, _ = Shelf(height_m, shelf_up, shelf_x, np.ones(len(shelf_up), bool), probe_up,
-                               lands).candidates()
-    holes = np.flatnonzero(~lands.any(axis=1))
-    if not holes.size:
-        return holes, np.zeros((0, shelf_x.shape[1])), np.zeros(0, int), np.zeros(0, bool)
-    start = cand_x[np.argmin(angles_deg(probe_up[holes], cand_up), axis=1)]
-    x, n, c = robustify(sim, probe_up[holes], start, height_m, offset_deg=offset_deg, generations=generations,
-                        seed=seed + 1, progress=progress)
-    return holes, x, n, c
+def fill_targets(shelf: Shelf, round_: int) -> np.ndarray:
+    """The probes a fill round searches a motion for: round 1 the holes (no candidate lands them); later rounds the
+    misses (some candidate lands the probe, but the choice there with the probe left out of the vote does not:
+    its neighbours point to a motion that fails on it)."""
+    some = shelf.lands.any(axis=1)
+    if round_ <= 1:
+        return np.flatnonzero(~some)
+    return np.array([p for p in np.flatnonzero(some) if not shelf.lands[p, shelf.choose(shelf.probe_up[p],
+                                                                                       exclude=p)[1]]], dtype=int)
+
+
+def fill(sim, shelf: Shelf, targets: np.ndarray, *, generations: int = ROBUST_GENERATIONS,
+         offset_deg: float = FILL_OFFSET_DEG, seed: int = 0,
+         progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """New entries for the probes ``targets`` of ``shelf``: for each, `robustify` over the probe and four attitudes
+    ``offset_deg`` round it, from the nearest candidate (an entry or a mirror image) that lands the probe, or the
+    nearest one where none does. Returns (motions (T, 55), how many of the five each lands, whether each lands its
+    probe); the caller keeps those that land something."""
+    if not len(targets):
+        return np.zeros((0, shelf.x.shape[1])), np.zeros(0, int), np.zeros(0, bool)
+    cand_up, cand_x, _ = shelf.candidates()
+    a = angles_deg(shelf.probe_up[targets], cand_up)
+    a = np.where(shelf.lands[targets] | ~shelf.lands[targets].any(axis=1, keepdims=True), a, np.inf)
+    return robustify(sim, shelf.probe_up[targets], cand_x[np.argmin(a, axis=1)], shelf.height_m,
+                     offset_deg=offset_deg, generations=generations, seed=seed, progress=progress)
 
 
 def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, probes: int = PROBES,
@@ -164,10 +175,12 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
                   restarts: int = 1, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
                   workdir: str | Path | None = None, resume: bool = False, command: str = "",
                   robust_generations: int = ROBUST_GENERATIONS, fill_generations: int = FILL_GENERATIONS,
+                  fill_rounds: int = FILL_ROUNDS,
                   progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """The library (module doc); ``progress(stage, done, total)`` with stage ``"<h> m optimum"``, ``"<h> m
-    robust"``, ``"<h> m probes"`` or ``"<h> m fill"``. ``robust_generations`` 0: no robust stage;
-    ``fill_generations`` > 0: fill the holes (`fill_holes`), then try the new entries on the probes."""
+    robust"``, ``"<h> m probes"`` or ``"<h> m fill <round>"``. ``robust_generations`` 0: no robust stage;
+    ``fill_generations`` > 0: ``fill_rounds`` rounds of `fill` on `fill_targets`, each followed by the new
+    entries' tries on the probes."""
     from felis.learning.landing.evaluate import BatchLandingSim
     from felis.learning.landing.optimum import optimise_all
 
@@ -226,21 +239,22 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
             lands = try_probes(sim, entry_up, x, probe_up, h, done=done, save=save,
                                progress=None if progress is None else
                                (lambda d, t, h=h: progress(f"{h:g} m probes", d, t)))
-            if fill_generations > 0:  # new entries where no candidate lands a probe, then their probes
-                ck = None if where is None else where / "fill.npz"
+            for k in range(1, fill_rounds + 1) if fill_generations > 0 else ():  # new entries, then their probes
+                ck = None if where is None else where / ("fill.npz" if k == 1 else f"fill{k}.npz")
                 if resume and ck is not None and ck.is_file():
                     with np.load(ck) as f:
-                        holes, fx, fn, fc = f["holes"], f["x"], f["landed"], f["centre"]
+                        at, fx, fn, fc = f["holes"], f["x"], f["landed"], f["centre"]
                 else:
-                    holes, fx, fn, fc = fill_holes(sim, entry_up, x, probe_up, lands, h,
-                                                   generations=fill_generations, seed=seed,
-                                                   progress=None if progress is None else
-                                                   (lambda d, t, h=h: progress(f"{h:g} m fill", d, t)))
+                    at = fill_targets(Shelf(float(h), entry_up, x, landed, probe_up, lands), k)
+                    fx, fn, fc = fill(sim, Shelf(float(h), entry_up, x, landed, probe_up, lands), at,
+                                      generations=fill_generations, seed=seed + k,
+                                      progress=None if progress is None else
+                                      (lambda d, t, h=h, k=k: progress(f"{h:g} m fill {k}", d, t)))
                     if ck is not None:
-                        np.savez(ck, holes=holes, x=fx, landed=fn, centre=fc)
+                        np.savez(ck, holes=at, x=fx, landed=fn, centre=fc)
                 keep = fn > 0
-                entry_up = np.concatenate([entry_up, probe_up[holes[keep]]])
-                entry_drops = entry_drops + [up_drop(u, h).as_dict() for u in probe_up[holes[keep]]]
+                entry_up = np.concatenate([entry_up, probe_up[at[keep]]])
+                entry_drops = entry_drops + [up_drop(u, h).as_dict() for u in probe_up[at[keep]]]
                 x = np.concatenate([x, fx[keep]])
                 landed = np.concatenate([landed, fc[keep]])
                 again = done if done is not None and done.shape[1] > lands.shape[1] else lands.astype(np.int8)
@@ -255,6 +269,7 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
             "search": {"generations": generations, "population": population, "restarts": restarts, "seed": seed,
                        "robust": {"generations": robust_generations, "population": ROBUST_POPULATION,
                                   "offset_deg": ROBUST_OFFSET_DEG},
-                       **({"fill": {"generations": fill_generations, "population": ROBUST_POPULATION,
+                       **({"fill": {"generations": fill_generations, "rounds": fill_rounds,
+                                    "population": ROBUST_POPULATION,
                                     "offset_deg": FILL_OFFSET_DEG}} if fill_generations > 0 else {})}}
     return MotionLibrary(shelves, meta=meta)

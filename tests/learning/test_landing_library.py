@@ -104,6 +104,24 @@ def test_the_probes_vote_for_the_motion_that_lands_near_the_attitude_not_the_nea
     assert c == 2
 
 
+def test_the_fill_targets_holes_first_then_the_probes_whose_neighbours_vote_for_a_motion_that_fails_there():
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.library_build import fill, fill_targets
+
+    s = _shelf()
+    s.probe_up = np.array([_unit(a) for a in (11.0, 12.0, 13.0, 14.0, 15.0, 40.0)])  # 40°: nothing lands it
+    s.lands = np.zeros((6, 4), dtype=bool)
+    s.lands[[0, 1, 3, 4], 2] = True  # entry 1 (at 14°) lands the probes at 11, 12, 14 and 15°
+    s.lands[2, 0] = True  # only entry 0 (at 10°) lands the one at 13°: its neighbours vote for entry 1, which fails
+    assert fill_targets(s, 1).tolist() == [5] and fill_targets(s, 2).tolist() == [2]
+    sim = BatchLandingSim(nthread=1)
+    try:  # no generations: the start, the nearest candidate that lands the probe (entry 0, not the nearer entry 1)
+        x, n, c = fill(sim, s, np.array([2, 5]), generations=0)  # or, for a hole, the nearest (entry 1)
+    finally:
+        sim.close()
+    assert np.array_equal(x[0], s.x[0]) and np.array_equal(x[1], s.x[1]) and n.shape == c.shape == (2,)
+
+
 def test_a_library_reads_back_as_written_and_picks_the_nearer_height():
     lib = MotionLibrary([_shelf(), Shelf(3.0, *[getattr(_shelf(), k) for k in ("up", "x", "landed", "probe_up",
                                                                                 "lands")])], meta={"made_by": "t"})
