@@ -32,7 +32,7 @@ ROBUST_OFFSET_DEG = 6.0
 ROBUST_GENERATIONS = 8
 ROBUST_POPULATION = 8
 FILL_GENERATIONS = ROBUST_GENERATIONS
-FILL_ROUNDS = 1
+FILL_ROUNDS = 2
 FILL_OFFSET_DEG = 3.0  # a hole's neighbours (the probes are ~5° apart at the default density)
 
 

@@ -176,7 +176,8 @@ def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
     assert len(fibonacci_ups(30, 60.0)) >= 2
     one = build_library(**kw, workdir=tmp_path / "a")
     where = tmp_path / "a" / "1m"
-    assert {p.name for p in where.iterdir()} == {"optimum.jsonl", "robust.npz", "probes.npy", "fill.npz"}
+    assert {p.name for p in where.iterdir()} == {"optimum.jsonl", "robust.npz", "probes.npy", "fill.npz",
+                                                "fill2.npz"}
     with np.load(where / "fill.npz") as f:
         assert len(f["holes"]) > 0  # so the fill stage ran on something
     res = np.load(where / "probes.npy")  # (probes, candidates): 1 lands, 0 does not, -1 not tried (too far apart)
