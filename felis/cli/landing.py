@@ -219,12 +219,11 @@ def cmd_train_library(args) -> int:
                             generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address, workdir=workdir,
                             resume=args.resume, command=command, fill_generations=args.fill_generations,
-                            fill_rounds=args.fill_rounds,
-                            progress=progress)
+                            fill_rounds=args.fill_rounds, progress=progress)
     write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
     for s in lib.shelves:
         print(f"{s.height_m:g} m: {int(s.landed.sum())} of {len(s.landed)} entries (the optimum, its robust "
-              f"twins, the holes' fills) land their own attitude; "
+              f"twins, the fills) land their own attitude; "
               f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion")
     print(f"library: {out}")
     return 0

@@ -245,13 +245,13 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
                     with np.load(ck) as f:
                         at, fx, fn, fc = f["holes"], f["x"], f["landed"], f["centre"]
                 else:
-                    at = fill_targets(Shelf(float(h), entry_up, x, landed, probe_up, lands), k)
-                    fx, fn, fc = fill(sim, Shelf(float(h), entry_up, x, landed, probe_up, lands), at,
-                                      generations=fill_generations, seed=seed + k,
+                    shelf = Shelf(float(h), entry_up, x, landed, probe_up, lands)
+                    at = fill_targets(shelf, k)
+                    fx, fn, fc = fill(sim, shelf, at, generations=fill_generations, seed=seed + k,
                                       progress=None if progress is None else
                                       (lambda d, t, h=h, k=k: progress(f"{h:g} m fill {k}", d, t)))
                     if ck is not None:
-                        np.savez(ck, holes=at, x=fx, landed=fn, centre=fc)
+                        np.savez(ck, holes=at, x=fx, landed=fn, centre=fc)  # "holes": the round's target probes
                 keep = fn > 0
                 entry_up = np.concatenate([entry_up, probe_up[at[keep]]])
                 entry_drops = entry_drops + [up_drop(u, h).as_dict() for u in probe_up[at[keep]]]
