@@ -1,6 +1,11 @@
 import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+# `make test` runs the suite on every core (pytest-xdist), so a test shares its core with another worker and
+# with the children both start: a reply from a virtual bus may come a scheduling slice late. The default
+# slack on a pty is 10 ms; 40 ms here, for every bus a test or its subprocesses open without their own
+# (tests of timeouts give theirs). The product's default is unchanged.
+os.environ.setdefault("FELIS_TIMEOUT_MARGIN_MS", "40")
 
 from hypothesis import settings  # noqa: E402
 

@@ -272,7 +272,9 @@ def test_cli_sysid_on_a_virtual_bus_then_refit_from_the_recording(tmp_path, caps
     assert doc["files"] == {"recording": "rec.npz", "params": "sysid-cat.json"}
     assert f["fitted"]["kp"] == pytest.approx(1.4 * f["default"]["kp"], rel=0.1)
     assert f["fitted"]["damping"] == pytest.approx(0.7 * f["default"]["damping"], rel=0.1)
-    assert f["step_rms_after"] * 5 <= f["step_rms_before"]
+    # the recording runs on the wall clock (as on a bench): on a loaded machine (`make test` on both cores) the
+    # fit's gain was measured down to 4.5× (0.0470 → 0.0105 rad), from 8× or more on an idle one
+    assert f["step_rms_after"] * 3 <= f["step_rms_before"]
     fitted = load_servo_params(tmp_path / "sysid-cat.json", cat)
     assert set(fitted) == {"tail_yaw"} and fitted["tail_yaw"].kp == pytest.approx(f["fitted"]["kp"])
     # refit from the saved recording: nothing moves, same answer
