@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.learning.landing.library import EVAL_RADIUS_DEG, MotionLibrary, Shelf, angles_deg
+from felis.learning.landing.library import EVAL_RADIUS_DEG, SIGMA_DEG, MotionLibrary, Shelf, angles_deg
 from felis.scenarios.drop import Drop
 
 GRID = 240
@@ -271,5 +271,6 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
                                   "offset_deg": ROBUST_OFFSET_DEG},
                        **({"fill": {"generations": fill_generations, "rounds": fill_rounds,
                                     "population": ROBUST_POPULATION,
-                                    "offset_deg": FILL_OFFSET_DEG}} if fill_generations > 0 else {})}}
+                                    "offset_deg": FILL_OFFSET_DEG,
+                                    "vote_sigma_deg": SIGMA_DEG}} if fill_generations > 0 else {})}}
     return MotionLibrary(shelves, meta=meta)
