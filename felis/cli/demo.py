@@ -29,16 +29,15 @@ def register(sub) -> None:
 
 
 DEMO_DROP = (1.0, -50.0, -30.0, 0.0)  # height m, roll, pitch, yaw °: inside what the shipped policies land
-HARD_MOTION = Path(__file__).resolve().parents[2] / "learning" / "weights" / "landing_hard_drop.json"
-HARD_DROP = (3.0, 120.0, 0.0, 0.0)  # the drop that motion was searched for (tilted 120°)
+HARD_DROP = (3.0, 120.0, 0.0, 0.0)  # tilted 120°: the library's motion for it is the optimum's (landing_hard_drop.json)
 
 
 def cmd_demo(args) -> int:
     """Servo-in-the-loop: the cat stands up through the virtual Dynamixel bus backed by MuJoCo (the
     whole hardware code path: DynamixelRobot, SDK, pseudo-terminal, byte-level servos, physics);
     then the cat dropped tilted from 1 m under the landing controller and the shipped motion library
-    (seed 000, issue 21), in MuJoCo, with video; then a hard drop, tilted 120° from 3 m, under the searched whole-body
-    motion for it; then the arm tracking a figure eight with the learned IK pipeline
+    (seed 000, issue 21), in MuJoCo, with video; then a hard drop, tilted 120° from 3 m, under the same controller and
+    library; then the arm tracking a figure eight with the learned IK pipeline
     (seed 001), with video; then the standing cat pushed, with the balance monitor's margin and alarm
     plotted (seed 004)."""
     root = Path(args.out)
@@ -100,12 +99,12 @@ def _episodes(run_dir: Path, no_video: bool):
                       drop=DEMO_DROP, controller_options={"policy": None, "drop_height": DEMO_DROP[0]},
                       log=run_dir / "drop.mcap", video=None if no_video else run_dir / "drop.mp4",
                       plot=run_dir / "drop.png", meta={"demo": True})),
-        ("[bold]felis demo 3/5[/]: a hard drop: the cat released tilted 120° (roll 120°) from 3 m, under the "
-         "landing controller running the whole-body motion the per-drop optimum found for this drop (open loop: "
-         "learning/weights/landing_hard_drop.json; MuJoCo). No trained policy lands a start tilted this far yet "
-         "(docs/landing.md)",
+        ("[bold]felis demo 3/5[/]: a hard drop: the cat released tilted 120° (roll 120°) from 3 m, under the same "
+         "landing controller and motion library (MuJoCo). Beyond 100° the library holds only the motions the "
+         "per-drop optimum found for a few hard starts (felis train landing-library --add), this one among them; "
+         "most starts tilted this far still fail (docs/landing.md)",
          lambda: dict(robot="cat", controller="landing", duration=2.5, drop=HARD_DROP,
-                      controller_options={"policy": HARD_MOTION, "drop_height": HARD_DROP[0]},
+                      controller_options={"policy": None, "drop_height": HARD_DROP[0]},
                       log=run_dir / "hard_drop.mcap", video=None if no_video else run_dir / "hard_drop.mp4",
                       plot=run_dir / "hard_drop.png", meta={"demo": True})),
         ("[bold]felis demo 4/5[/]: the arm tracks a figure eight: targets → LSTM Motion Predictor → "

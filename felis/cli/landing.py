@@ -9,6 +9,7 @@ result with one entry per drop (``--out`` also writes it to a file).
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -93,6 +94,12 @@ def register_train(train_sub) -> None:
     b.add_argument("--workers", type=int, help="processes for the search, threads for the probes (default: every "
                    "core)")
     b.add_argument("--ray-address", metavar="ADDRESS|auto|local", help="search on a Ray cluster (felis[cluster])")
+    b.add_argument("--add", nargs="+", type=Path, metavar="MOTION.json",
+                   help="no search: add these motion files (felis eval landing --policy optimum --motions DIR) to "
+                   "the library --base as entries of their drop height's shelf, tried on the probes near them")
+    b.add_argument("--base", type=Path, metavar="LIBRARY.json",
+                   help="the library --add extends (default: the shipped one, "
+                   f"learning/weights/{DEFAULT_LIBRARY.name})")
     b.set_defaults(func=cmd_train_library)
 
 
@@ -199,6 +206,11 @@ def cmd_train_library(args) -> int:
         raise ParameterError(f"--fill-generations must be ≥ 0 and --fill-rounds ≥ 1, got {args.fill_generations} "
                              f"and {args.fill_rounds}")
     check_target(out, "landing motion library", ParameterError)
+    command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    if args.add:
+        return _add_to_library(args, out, command)
+    if args.base is not None:
+        raise ParameterError("--base names the library that --add extends; give --add MOTION.json too")
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
@@ -213,7 +225,6 @@ def cmd_train_library(args) -> int:
         if quiet:
             print(f"{stage}: {done}/{total}", flush=True)
 
-    command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     with bar:
         lib = build_library(args.heights, grid=args.grid, probes=args.probes, max_tilt_deg=args.max_tilt,
                             generations=args.generations, population=args.population, restarts=args.restarts,
@@ -226,6 +237,48 @@ def cmd_train_library(args) -> int:
               f"twins, the fills) land their own attitude; "
               f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion")
     print(f"library: {out}")
+    return 0
+
+
+def _add_to_library(args, out: Path, command: str) -> int:
+    """``felis train landing-library --add MOTION.json… [--base LIBRARY]``: `add_motions`, written to ``out``."""
+    import json
+
+    from felis.files import write_atomic
+    from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
+    from felis.learning.landing.library_build import add_motions
+    from felis.learning.landing.motion import load_motion
+
+    base = args.base or DEFAULT_LIBRARY
+    lib = load_library(base)
+    motions = []
+    for path in args.add:
+        rule, drop = load_motion(path)
+        if drop is None:
+            raise ParameterError(f"{path}: a motion file without its 'drop' cannot join a library (the library "
+                                 "places a motion by the attitude it was searched for)")
+        if not math.isclose(rule.height_m, float(drop["height_m"]), rel_tol=1e-6):
+            raise ParameterError(f"{path}: the motion is timed for {rule.height_m:g} m but its drop is from "
+                                 f"{float(drop['height_m']):g} m")
+        motions.append((rule.x, drop, Path(path).name))
+    quiet = not sys.stderr.isatty()
+    bar = output.bar(quiet=quiet, field="info", transient=False)
+    tasks: dict[str, int] = {}
+
+    def progress(stage, done, total):
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=total, info="")
+        bar.update(tasks[stage], completed=done)
+
+    with bar:
+        lib = add_motions(lib, motions, workers=args.workers, command=command, progress=progress)
+    write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
+    for a in lib.meta["added"][-len(motions):]:
+        d = a["drop"]
+        print(f"{a['motion']}: {a['height_m']:g} m shelf, drop ({d['roll_deg']:g}, {d['pitch_deg']:g}, "
+              f"{d['yaw_deg']:g}) {'lands' if a['landed'] else 'does NOT land'} its own attitude; "
+              f"{a['probes_landed']} probes landed by it or its mirror image")
+    print(f"library: {out} (from {base})")
     return 0
 
 

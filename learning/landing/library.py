@@ -22,7 +22,8 @@ maximises Σₚ wₚ·[c lands p] over the probes within `RADIUS_DEG`, wₚ = ex
 nearest entry; where no nearby probe is landed by anything, the nearest entry that landed its own drop (else the
 nearest entry). An attitude with u_y < 0 is mirrored first and its choice mirrored back.
 
-**File** (`load_library`, JSON): ``{"format": FORMAT, "version": 1, "made_by", "radius_deg", "sigma_deg",
+**File** (`load_library`, JSON): ``{"format": FORMAT, "version": 1, "made_by", ["added", "extended_by",]
+"radius_deg", "sigma_deg",
 "shelves": [{"height_m", "entries": [{"up", "drop", "landed", "motion_x"}], "probes": [{"up", "lands"}]}]}``;
 ``lands`` lists candidate ids, 2·entry + (1 if mirrored). Made by ``felis train landing-library``.
 """
@@ -229,7 +230,7 @@ def library_from_dict(doc) -> MotionLibrary:
             raise ParameterError(f"{where}: every 'up' must be a unit vector")
         shelves.append(Shelf(float(h), U, np.array(x), np.array(landed), np.array(pup).reshape(-1, 3), lands,
                              drops if all(d is not None for d in drops) else None))
-    meta = {k: doc[k] for k in ("made_by", "grid", "search") if k in doc}
+    meta = {k: doc[k] for k in ("made_by", "grid", "search", "added", "extended_by") if k in doc}
     return MotionLibrary(shelves, float(rs[0]), float(rs[1]), meta)
 
 

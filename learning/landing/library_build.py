@@ -274,3 +274,49 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
                                     "offset_deg": FILL_OFFSET_DEG,
                                     "vote_sigma_deg": SIGMA_DEG}} if fill_generations > 0 else {})}}
     return MotionLibrary(shelves, meta=meta)
+
+
+def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, str]], *, workers: int | None = None,
+                command: str = "", progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
+    """``lib`` with more entries: each motion (x (55,), the drop it was searched for, its name), for example one
+    the optimum found for a hard drop (`felis eval landing --policy optimum --motions DIR`), joins the shelf of its
+    drop's height (mirrored to u_y ≥ 0 when its drop is not), is tried on that drop with yaw 0 (``landed``) and,
+    with its mirror image, on the probes within `EVAL_RADIUS_DEG` (the shelf's other results are kept). A start
+    beyond the probes' tilt that no probe votes for then gets the nearest entry that landed: the added one near its
+    drop. The meta records each addition (``added``) and the command."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.library import drop_up, mirror_motion, mirror_up
+    from felis.learning.landing.optimum import evaluate
+
+    shelves = {s.height_m: s for s in lib.shelves}
+    added = []
+    for x, drop, name in motions:
+        h = float(drop["height_m"])
+        shelf = next((s for hh, s in shelves.items() if math.isclose(hh, h, rel_tol=1e-6)), None)
+        if shelf is None:
+            raise ParameterError(f"{name}: a motion for a {h:g} m drop; the library has shelves at "
+                                 f"{', '.join(f'{s:g}' for s in shelves)} m only (a motion is timed for its fall)")
+        u = drop_up(Drop(**{k: float(drop[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg", "height_m")}))
+        x = np.asarray(x, dtype=float)
+        if u[1] < 0:
+            u, x = mirror_up(u), mirror_motion(x)
+        sim = BatchLandingSim(nthread=workers)
+        try:
+            (_, verdict), = evaluate(sim, [up_drop(u, h)], x[None])
+            up = np.concatenate([shelf.up, u[None]])
+            xs = np.concatenate([shelf.x, x[None]])
+            lands = try_probes(sim, up, xs, shelf.probe_up, h, done=shelf.lands.astype(np.int8),
+                               progress=None if progress is None else
+                               (lambda d, t, h=h: progress(f"{h:g} m probes", d, t)))
+        finally:
+            sim.close()
+        drops = (list(shelf.drops) if shelf.drops else [up_drop(v, h).as_dict() for v in shelf.up]) + [dict(drop)]
+        shelves[shelf.height_m] = Shelf(shelf.height_m, up, xs, np.append(shelf.landed, bool(verdict.landed)),
+                                        shelf.probe_up, lands, drops)
+        added.append({"motion": name, "drop": dict(drop), "height_m": shelf.height_m,
+                      "landed": bool(verdict.landed), "probes_landed": int(lands[:, -2:].any(axis=1).sum())})
+    meta = dict(lib.meta)
+    meta["added"] = list(meta.get("added", [])) + added
+    if command:
+        meta["extended_by"] = list(meta.get("extended_by", [])) + [command]
+    return MotionLibrary(list(shelves.values()), lib.radius_deg, lib.sigma_deg, meta=meta)

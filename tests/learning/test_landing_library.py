@@ -207,3 +207,65 @@ def test_cli_builds_a_library_that_eval_runs(tmp_path):
     assert json.loads(r.stdout)["total"] == 2
     r = _felis("train", "landing-library", "--out", str(tmp_path / "x.npz"))
     assert r.returncode != 0 and "must end in .json" in r.stderr
+
+
+def _without_far_entries(lib: MotionLibrary, max_tilt_deg: float) -> MotionLibrary:
+    """``lib`` without the entries tilted beyond ``max_tilt_deg`` (those `--add` puts there), probes kept."""
+    shelves = []
+    for s in lib.shelves:
+        keep = np.flatnonzero(np.degrees(np.arccos(np.clip(s.up[:, 2], -1, 1))) <= max_tilt_deg + 0.5)
+        cols = np.stack([2 * keep, 2 * keep + 1], axis=1).ravel()
+        shelves.append(Shelf(s.height_m, s.up[keep], s.x[keep], s.landed[keep], s.probe_up, s.lands[:, cols],
+                             None if s.drops is None else [s.drops[i] for i in keep]))
+    return MotionLibrary(shelves, lib.radius_deg, lib.sigma_deg, meta={"made_by": "test"})
+
+
+def test_add_puts_a_hard_drop_motion_on_its_shelf_and_the_library_then_lands_that_drop(tmp_path):
+    """`felis train landing-library --add`: the motion the optimum found for (120, 0, 0) from 3 m joins the 3 m
+    shelf; the library, which landed nothing tilted beyond 100° before, now lands that drop (the same policy as
+    every other start); any other start gets the new motion or what the base chose."""
+    from felis.learning.landing.motion import load_motion
+
+    hard = DEFAULT_LIBRARY.parent / "landing_hard_drop.json"
+    base = _without_far_entries(load_library(), 100.0)
+    base_path = tmp_path / "base.json"
+    base_path.write_text(json.dumps(base.as_dict()))
+    drops = tmp_path / "hard.json"
+    drops.write_text(json.dumps([{"roll_deg": 120, "pitch_deg": 0, "yaw_deg": 0, "height_m": 3.0}]))
+    r = _felis("eval", "landing", "--drops", str(drops), "--policy", str(base_path), "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["landed"] == 0  # what the library did before
+    out = tmp_path / "ext.json"
+    r = _felis("train", "landing-library", "--add", str(hard), "--base", str(base_path), "--out", str(out),
+               "--workers", "2")
+    assert r.returncode == 0, r.stderr
+    assert "landing_hard_drop.json: 3 m shelf, drop (120, 0, 0) lands its own attitude" in r.stdout
+    ext = load_library(out)
+    s0, s1 = base.shelf(3.0), ext.shelf(3.0)
+    assert len(s1.up) == len(s0.up) + 1 and np.array_equal(s1.lands[:, :-2], s0.lands)
+    assert np.allclose(s1.x[-1], load_motion(hard)[0].x) and s1.landed[-1]
+    doc = json.loads(out.read_text())
+    assert doc["added"][-1]["motion"] == "landing_hard_drop.json" and doc["extended_by"][-1].startswith(
+        "felis train landing-library --add")
+    assert len(ext.shelf(1.0).up) == len(base.shelf(1.0).up)
+    r = _felis("eval", "landing", "--drops", str(drops), "--policy", str(out), "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["landed"] == 1
+    new = {2 * len(s0.up), 2 * len(s0.up) + 1}
+    for u in (drop_up(d) for d in random_drops(100, seed=5, heights=3.0)):  # the new motion, or the same choice
+        assert s1.choose(u)[1] in {s0.choose(u)[1]} | new
+
+
+def test_add_refuses_a_motion_for_another_height_or_without_its_drop_in_one_line(tmp_path):
+    hard = json.loads((DEFAULT_LIBRARY.parent / "landing_hard_drop.json").read_text())
+    two = tmp_path / "two.json"
+    two.write_text(json.dumps({**hard, "height_m": 2.0, "drop": {**hard["drop"], "height_m": 2.0}}))
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps({k: v for k, v in hard.items() if k != "drop"}))
+    for path, words in ((two, "a motion for a 2 m drop; the library has shelves at 1, 3 m only"),
+                        (bare, "without its 'drop' cannot join a library")):
+        r = _felis("train", "landing-library", "--add", str(path), "--out", str(tmp_path / "o.json"))
+        assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not (tmp_path / "o.json").exists()
+    r = _felis("train", "landing-library", "--base", str(DEFAULT_LIBRARY), "--out", str(tmp_path / "o.json"))
+    assert r.returncode != 0 and "give --add MOTION.json too" in r.stderr

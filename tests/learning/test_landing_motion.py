@@ -78,30 +78,26 @@ def test_optimum_writes_motions_that_felis_run_lands(tmp_path):
     assert bad.returncode != 0 and "run it with --height 0.5" in bad.stderr
 
 
-def test_the_shipped_hard_drop_lands_on_mujoco_and_turns_the_cat_through_the_virtual_bus(tmp_path):
-    """The demo's hard drop (issue 21): tilted 120° from 3 m, the searched whole-body motion
-    (`learning/weights/landing_hard_drop.json`) lands on MuJoCo by the landing rule. Through the virtual
-    Dynamixel bus (servo-in-the-loop, on the wall clock) the same file turns the cat from 120° to below 45° before
-    it touches down (measured 35–40° in 10 of 10 runs); whether it then stays on its feet depends on the clock's
-    jitter (upright in 7 and in 9 of 10 runs, two sessions: docs/landing.md), so that is not asserted here."""
-    from pathlib import Path
-
+def test_the_hard_drop_lands_on_mujoco_and_turns_the_cat_through_the_virtual_bus_with_the_library(tmp_path):
+    """The demo's hard drop (issue 21): tilted 120° from 3 m, under the shipped motion library, the policy of every
+    other drop (it holds the optimum's motion for this start, `learning/weights/landing_hard_drop.json`, added with
+    `felis train landing-library --add`), lands on MuJoCo by the landing rule. Through the virtual Dynamixel bus
+    (servo-in-the-loop, on the wall clock) the library turns the cat from 120° to below 45° before it touches down;
+    whether it then stays on its feet depends on the clock's jitter (docs/landing.md), so that is not asserted."""
     from felis.learning.landing.evaluate import LandingSim
     from felis.logs.reader import read_log
     from felis.rotations import euler_quat, tilt_deg
 
-    path = Path(__file__).resolve().parents[2] / "learning" / "weights" / "landing_hard_drop.json"
-    _, drop = load_motion(path)
-    d = Drop(**drop)
-    assert tilt_deg(euler_quat(d.roll_deg, d.pitch_deg, d.yaw_deg)) >= 120.0 - 1e-9 and d.height_m == 3.0
+    d = Drop(120.0, 0.0, 0.0, 3.0)
+    assert tilt_deg(euler_quat(d.roll_deg, d.pitch_deg, d.yaw_deg)) >= 120.0 - 1e-9
     sim = LandingSim()
     try:
-        out = sim.run(d, make_controller("landing", policy=path, drop_height=3.0))
+        out = sim.run(d, make_controller("landing", policy=None, drop_height=3.0))  # None: the shipped library
     finally:
         sim.close()
     assert out.landed, out.why
     log = tmp_path / "bus.mcap"
-    bus = _felis("run", "landing", "--robot", "cat", "--height", "3", "--roll", "120", "--policy", str(path),
+    bus = _felis("run", "landing", "--robot", "cat", "--height", "3", "--roll", "120",
                  "--backend", "dxl", "--port", "virtual", "--json", "--log", str(log))
     assert bus.returncode == 0, bus.stderr
     assert json.loads(bus.stdout)["run"]["torque_off_verified"] is True
