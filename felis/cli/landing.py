@@ -190,6 +190,23 @@ def cmd_train_landing(args) -> int:
     return 0
 
 
+def _stage_bar():
+    """(a progress bar, ``progress(stage, done, total)`` for it): one task per stage; a line per update when
+    stderr is not a terminal."""
+    quiet = not sys.stderr.isatty()
+    bar = output.bar(quiet=quiet, field="info", transient=False)
+    tasks: dict[str, int] = {}
+
+    def progress(stage, done, total):
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=total, info="")
+        bar.update(tasks[stage], completed=done)
+        if quiet:
+            print(f"{stage}: {done}/{total}", flush=True)
+
+    return bar, progress
+
+
 def cmd_train_library(args) -> int:
     import json
     import shlex
@@ -214,17 +231,7 @@ def cmd_train_library(args) -> int:
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
-    quiet = not sys.stderr.isatty()
-    bar = output.bar(quiet=quiet, field="info", transient=False)
-    tasks: dict[str, int] = {}
-
-    def progress(stage, done, total):
-        if stage not in tasks:
-            tasks[stage] = bar.add_task(stage, total=total, info="")
-        bar.update(tasks[stage], completed=done)
-        if quiet:
-            print(f"{stage}: {done}/{total}", flush=True)
-
+    bar, progress = _stage_bar()
     with bar:
         lib = build_library(args.heights, grid=args.grid, probes=args.probes, max_tilt_deg=args.max_tilt,
                             generations=args.generations, population=args.population, restarts=args.restarts,
@@ -261,15 +268,7 @@ def _add_to_library(args, out: Path, command: str) -> int:
             raise ParameterError(f"{path}: the motion is timed for {rule.height_m:g} m but its drop is from "
                                  f"{float(drop['height_m']):g} m")
         motions.append((rule.x, drop, Path(path).name))
-    quiet = not sys.stderr.isatty()
-    bar = output.bar(quiet=quiet, field="info", transient=False)
-    tasks: dict[str, int] = {}
-
-    def progress(stage, done, total):
-        if stage not in tasks:
-            tasks[stage] = bar.add_task(stage, total=total, info="")
-        bar.update(tasks[stage], completed=done)
-
+    bar, progress = _stage_bar()
     with bar:
         lib = add_motions(lib, motions, workers=args.workers, command=command, progress=progress)
     write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
