@@ -290,31 +290,31 @@ def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, st
 
     shelves = {s.height_m: s for s in lib.shelves}
     added = []
-    for x, drop, name in motions:
-        h = float(drop["height_m"])
-        shelf = next((s for hh, s in shelves.items() if math.isclose(hh, h, rel_tol=1e-6)), None)
-        if shelf is None:
-            raise ParameterError(f"{name}: a motion for a {h:g} m drop; the library has shelves at "
-                                 f"{', '.join(f'{s:g}' for s in shelves)} m only (a motion is timed for its fall)")
-        u = drop_up(Drop(**{k: float(drop[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg", "height_m")}))
-        x = np.asarray(x, dtype=float)
-        if u[1] < 0:
-            u, x = mirror_up(u), mirror_motion(x)
-        sim = BatchLandingSim(nthread=workers)
-        try:
+    sim = BatchLandingSim(nthread=workers)
+    try:
+        for x, drop, name in motions:
+            h = float(drop["height_m"])
+            shelf = next((s for hh, s in shelves.items() if math.isclose(hh, h, rel_tol=1e-6)), None)
+            if shelf is None:
+                raise ParameterError(f"{name}: a motion for a {h:g} m drop; the library has shelves at "
+                                     f"{', '.join(f'{s:g}' for s in shelves)} m only (a motion is timed for its fall)")
+            u = drop_up(Drop(**{k: float(drop[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg", "height_m")}))
+            x = np.asarray(x, dtype=float)
+            if u[1] < 0:
+                u, x = mirror_up(u), mirror_motion(x)
             (_, verdict), = evaluate(sim, [up_drop(u, h)], x[None])
             up = np.concatenate([shelf.up, u[None]])
             xs = np.concatenate([shelf.x, x[None]])
             lands = try_probes(sim, up, xs, shelf.probe_up, h, done=shelf.lands.astype(np.int8),
                                progress=None if progress is None else
                                (lambda d, t, h=h: progress(f"{h:g} m probes", d, t)))
-        finally:
-            sim.close()
-        drops = (list(shelf.drops) if shelf.drops else [up_drop(v, h).as_dict() for v in shelf.up]) + [dict(drop)]
-        shelves[shelf.height_m] = Shelf(shelf.height_m, up, xs, np.append(shelf.landed, bool(verdict.landed)),
-                                        shelf.probe_up, lands, drops)
-        added.append({"motion": name, "drop": dict(drop), "height_m": shelf.height_m,
-                      "landed": bool(verdict.landed), "probes_landed": int(lands[:, -2:].any(axis=1).sum())})
+            drops = (list(shelf.drops) if shelf.drops else [up_drop(v, h).as_dict() for v in shelf.up]) + [dict(drop)]
+            shelves[shelf.height_m] = Shelf(shelf.height_m, up, xs, np.append(shelf.landed, bool(verdict.landed)),
+                                            shelf.probe_up, lands, drops)
+            added.append({"motion": name, "drop": dict(drop), "height_m": shelf.height_m,
+                          "landed": bool(verdict.landed), "probes_landed": int(lands[:, -2:].any(axis=1).sum())})
+    finally:
+        sim.close()
     meta = dict(lib.meta)
     meta["added"] = list(meta.get("added", [])) + added
     if command:
