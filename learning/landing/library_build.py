@@ -300,15 +300,17 @@ def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, st
                                      f"{', '.join(f'{s:g}' for s in shelves)} m only (a motion is timed for its fall)")
             u = drop_up(Drop(**{k: float(drop[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg", "height_m")}))
             x = np.asarray(x, dtype=float)
-            if u[1] < 0:
+            entry_drop = dict(drop)
+            if u[1] < 0:  # the entry is the mirror image, and its drop the mirrored one (``added`` keeps the file's)
                 u, x = mirror_up(u), mirror_motion(x)
+                entry_drop.update(roll_deg=-float(drop["roll_deg"]), yaw_deg=-float(drop["yaw_deg"]))
             (_, verdict), = evaluate(sim, [up_drop(u, h)], x[None])
             up = np.concatenate([shelf.up, u[None]])
             xs = np.concatenate([shelf.x, x[None]])
             lands = try_probes(sim, up, xs, shelf.probe_up, h, done=shelf.lands.astype(np.int8),
                                progress=None if progress is None else
                                (lambda d, t, h=h: progress(f"{h:g} m probes", d, t)))
-            drops = (list(shelf.drops) if shelf.drops else [up_drop(v, h).as_dict() for v in shelf.up]) + [dict(drop)]
+            drops = (list(shelf.drops) if shelf.drops else [up_drop(v, h).as_dict() for v in shelf.up]) + [entry_drop]
             shelves[shelf.height_m] = Shelf(shelf.height_m, up, xs, np.append(shelf.landed, bool(verdict.landed)),
                                             shelf.probe_up, lands, drops)
             added.append({"motion": name, "drop": dict(drop), "height_m": shelf.height_m,
