@@ -5,7 +5,7 @@ Bound to 127.0.0.1 unless a host is given; nothing listens without the flag. The
 threads and keeps a bounded queue per client (the oldest messages are dropped when a client is slow), so the
 control loop never waits on a viewer (`bench/sim_speed.py --with-log`); a message on a channel no client
 subscribes to is not handed to the server at all. The run log hands over each tick's messages in batches, when it
-finishes a chunk (`felis.logs.runlog`, "Speed"): a viewer sees the run at most 0.08 s late.
+finishes a chunk (`felis.logs.runlog`, "Speed"): a viewer sees the run at most 0.1 s late at 100 Hz.
 Messages a viewer needs whenever it connects (``/meta``, the
 ``/robot`` scene) are latched: sent again to each client that subscribes to them.
 """

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import foxglove
@@ -15,12 +16,15 @@ from foxglove.messages import Timestamp
 from felis.errors import LogError
 from felis.files import prepare_parent
 from felis.logs import sdk
+from felis.logs.background import Background
 from felis.logs.schemas import _text, jsonable, schema_of
 
 MAGIC = b"\x89MCAP0\r\n"
 PROFILE = ""  # Foxglove's well-known schemas in protobuf and JSON: no ROS profile
+BACKGROUND = True  # chunks are written by a writer thread (`felis.logs.background`); False: on the loop's thread
 COMPRESSION = MCAPCompression.Lz4  # per chunk; lz4 and zstd cost about the same at this chunk size
-FLUSH_S = 0.08  # a chunk is finished at least this often (run time): the most a killed process loses, plus a tick
+FLUSH_S = 0.04  # a chunk is finished at least this often (run time); a killed process loses at most twice this, plus
+# two ticks (`felis.logs.runlog`, "Crash safety")
 FLUSH_WALL_S = FLUSH_S / 2  # … and not more often than this (wall time): a simulation faster than real time
 
 # ---------------------------------------------------------------------------------------------
@@ -61,10 +65,13 @@ class McapLog:
         self._last_ns = self.start_ns
         self._flushed_ns = self.start_ns
         self._flushed_wall = time.monotonic_ns()
+        self._next_ns = self.start_ns + FLUSH_NS  # log time of the next look at the chunk (`_boundary`)
+        self._next_t = FLUSH_S  # … as run time (s)
         self._contexts = []
         self._writer = None
         self.live = live
         self._pending: list[tuple] = []  # deferred writes (`defer`)
+        self._bg: Background | None = None  # the writer thread, from the first chunk handed over
         if self.path is not None:
             prepare_parent(self.path, what, error)
             _remove_old(self.path)
@@ -141,17 +148,53 @@ class McapLog:
 
     def defer(self, fn, *args) -> None:
         """Run ``fn(*args)`` (an encode and write) at the next chunk boundary, with the other deferred ones in
-        order: at most `FLUSH_S` of run time later, the time after which the chunk would be handed to the
-        operating system anyway, so a crash loses no more than before. Why: writes done together cost less than one
-        at a time between physics steps (module doc, "Speed")."""
+        order, on the writer thread (`felis.logs.background`): at most `FLUSH_S` of run time later, when the chunk
+        is finished anyway, so a crash loses no more than before. Why: writes done together cost less than one at
+        a time between physics steps (`felis.logs.runlog`, "Speed"). ``fn`` must not touch what the loop's thread
+        changes after this call."""
         self._pending.append((fn, args))
 
+    def _take(self):
+        """The deferred work so far, taken out of the log (what `_steps` writes)."""
+        pending, self._pending = self._pending, []
+        return pending
+
+    def _steps(self, pending) -> Iterator[None]:
+        """Write what `_take` took, yielding between small slices of the work (`felis.logs.background`)."""
+        for fn, args in pending:
+            fn(*args)
+            yield
+
     def _write_pending(self) -> None:
-        pending = self._pending
-        if pending:
-            self._pending = []
-            for fn, args in pending:
-                fn(*args)
+        """Write what is deferred now, on this thread."""
+        for _ in self._steps(self._take()):
+            pass
+
+    def _job(self, data) -> Iterator[None]:
+        """The writer thread's job: the deferred writes taken, then the chunk finished."""
+        yield from self._steps(data)
+        if self._writer is not None:
+            self._writer.flush()
+
+    def _handoff(self) -> None:
+        """Finish the chunk: its deferred writes and the finishing go to the writer thread
+        (`felis.logs.background`), after the job handed over before if the writer has not done it yet (so at most
+        one is unwritten); without `BACKGROUND`, now."""
+        if not BACKGROUND:
+            self.flush()
+            return
+        bg = self._bg
+        if bg is None:
+            self._bg = bg = Background()
+        elif bg.pending:
+            self._background(bg.drain)
+        bg.submit(self._job(self._take()))
+
+    def _background(self, fn) -> None:
+        try:
+            fn()
+        except (OSError, RuntimeError) as e:
+            raise self._error(f"cannot write {self._what} {self.path}: {e}") from None
 
     def message(self, topic: str, t: float, msg: dict, schema: dict | None = None) -> None:
         """Write the JSON ``msg`` on ``topic`` at run time ``t`` (s); the channel is made on first use with
@@ -173,14 +216,33 @@ class McapLog:
     def _tick(self, ns: int) -> None:
         if ns > self._last_ns:
             self._last_ns = ns
-        if ns - self._flushed_ns >= FLUSH_NS:
-            wall = time.monotonic_ns()
-            if wall - self._flushed_wall >= FLUSH_WALL_NS:  # faster than real time: by the wall clock (module doc)
-                self.flush()
-                self._flushed_ns, self._flushed_wall = ns, wall
+        if ns >= self._next_ns:
+            self._boundary(ns)
+        bg = self._bg
+        if bg is not None:
+            if bg.error is not None:
+                self._background(bg.check)
+            bg.nudge()
+
+    def _boundary(self, ns: int) -> None:
+        """`FLUSH_S` of run time has passed since the last chunk: finish it if `FLUSH_WALL_S` of wall time has
+        too, else (faster than real time) look again when the wall clock is likely to have caught up halfway, and
+        at least every `FLUSH_S` / 4 of run time (a tick at 100 Hz: the crash bound's slack)."""
+        wall = time.monotonic_ns()
+        waited = wall - self._flushed_wall
+        if waited >= FLUSH_WALL_NS:
+            self._handoff()
+            self._flushed_ns, self._flushed_wall = ns, wall
+            self._next_ns = ns + FLUSH_NS
+        else:
+            ran = ns - self._flushed_ns
+            self._next_ns = ns + max(1, min(FLUSH_NS // 4, (FLUSH_WALL_NS - waited) * ran // max(1, 2 * waited)))
+        self._next_t = (self._next_ns - self.start_ns) * 1e-9
 
     def flush(self) -> None:
         """Write what is deferred, finish the current chunk and hand it to the operating system."""
+        if self._bg is not None:
+            self._background(self._bg.drain)
         self._write_pending()
         if self._writer is not None:
             try:
@@ -197,6 +259,9 @@ class McapLog:
         if self._closed:
             return
         try:
+            if self._bg is not None:
+                bg, self._bg = self._bg, None
+                self._background(bg.close)
             self._write_pending()
             if summary is not None:
                 s = jsonable(summary)

@@ -32,22 +32,26 @@ Every JSON schema follows the rules of Foxglove's JSON-schema parser (one type p
 every object, ``items`` on every array, no arrays of arrays; `schema_of` builds them from example values).
 
 Speed: a tick's messages are not encoded when the loop logs them: the states, commands and times are kept (and
-the body poses copied) until the chunk is finished, at most `FLUSH_S` of run time later, and then encoded all
-together, channel by channel: the Protobuf ones of all the kept ticks filled into templates in one numpy scatter
-per channel (`felis.logs.wire`, `felis.logs.messages`). Done together they cost less than one tick at a time
-between physics steps, which evict the interpreter's working set from the CPU caches; the per-tick channels are all
-Protobuf because formatting four of them as JSON text was 40 % of the log's cost. A `State` and a
+the body poses copied; `RunLog.tick` costs one comparison, the poses and one append between chunk boundaries) until
+the chunk is finished, at most `FLUSH_S` of run time later, and then encoded all together, channel by channel: the
+Protobuf ones of all the kept ticks filled into templates in one numpy scatter per channel (`felis.logs.wire`,
+`felis.logs.messages`). Done together they cost less than one tick at a time between physics steps, which evict the
+interpreter's working set from the CPU caches; the per-tick channels are all Protobuf because formatting four of
+them as JSON text was 40 % of the log's cost. The encoding, writing and finishing of a chunk run on a writer thread
+(`felis.logs.background`) while the loop's thread waits in the physics step or its sleep. A `State` and a
 `Command` are therefore not to be changed after they are logged (the robots make new ones each tick). The live
-view gets them in the same batches: a viewer sees a run at most `FLUSH_S` late. Events (``/log``) and messages
-are written at once.
+view gets them in the same batches: a viewer sees a run at most 2 × `FLUSH_S` plus a tick late. Events (``/log``)
+and messages are written at once.
 
-Crash safety: the file is chunked (lz4) and indexed, and each chunk is finished and handed to the operating
-system at the start of the first tick by which both `FLUSH_S` of run time and `FLUSH_WALL_S` (half of it) of wall
-time have passed since the last, so a process killed mid-run loses at most the last `FLUSH_S` plus one tick (the
-kept ticks belong to the chunk that is lost anyway) of a run that keeps pace with the clock (hardware,
-servo-in-the-loop, a real-time simulation), and a simulation running faster than real time loses at most the ticks
-of its last `FLUSH_WALL_S` of wall time, plus one. Finishing a chunk costs about half a millisecond whatever it
-holds: a simulation at 8× real time finishing one every `FLUSH_S` of run time spent a tenth of its time on that.
+Crash safety: the file is chunked (lz4) and indexed. At the start of the first tick by which both `FLUSH_S` of run
+time and `FLUSH_WALL_S` (half of it) of wall time have passed since the last, the chunk's ticks go to the writer
+thread, which writes them, finishes the chunk and hands it to the operating system; the chunk handed over before is
+written first if the writer has not finished it, so at most one handed-over chunk is ever unwritten. A process
+killed mid-run therefore loses at most the last 2 × `FLUSH_S` plus two ticks (0.1 s at 100 Hz) of a run that keeps
+pace with the clock (hardware, servo-in-the-loop, a real-time simulation), and a simulation running faster than
+real time at most the ticks of its last 2 × `FLUSH_WALL_S` of wall time, plus two, plus two × `FLUSH_S` / 4 of
+run time (the chunk boundary is looked for that often). Finishing a chunk costs about
+half a millisecond whatever it holds (on the writer thread).
 `felis.logs.reader.read_log` walks the records of the intact prefix
 and reports ``complete=False`` for a cut file. (No ``fsync``: a power cut may lose the page cache.)
 
@@ -59,6 +63,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -111,6 +116,7 @@ class RunLog(McapLog):
         import felis  # late: felis/__init__ may one day import this module
 
         self.spec = spec
+        self._rows: list[tuple] = []  # deferred ticks (`tick`): (t, state, q sent, control s, poses)
         self._ticks: list[tuple] = []  # deferred (ns, state, poses), (ns, q sent), (ns, control s)
         self._cmds: list[tuple] = []
         self._times: list[tuple] = []
@@ -161,16 +167,44 @@ class RunLog(McapLog):
         self._tick(ns)
         self._ticks.append((ns, state, None if self._poses is None else self._poses(state)))
 
-    def _write_pending(self) -> None:
+    def _take(self):
+        rows, ticks, cmds, times = self._rows, self._ticks, self._cmds, self._times
+        self._rows, self._ticks, self._cmds, self._times = [], [], [], []
+        if rows:
+            self._last_ns = max(self._last_ns, self.ns(rows[-1][0]))
+        return rows, ticks, cmds, times, super()._take()
+
+    def _ns_many(self, t: list[float]) -> list[int]:
+        """`ns` of many run times at once."""
+        t = np.array(t, dtype=float)
+        ok = np.isfinite(t) & (t > 0) & (t < 1e9)
+        return (self.start_ns + np.where(ok, np.rint(np.where(ok, t, 0.0) * 1e9), 0.0).astype(np.int64)).tolist()
+
+    def _merge(self, rows: list[tuple], ticks: list[tuple], cmds: list[tuple], times: list[tuple]):
+        """The ticks of `tick` (rows) and of `state`, `command`, `timing` as (ns, …) lists, in time order."""
+        ns = self._ns_many([r[0] for r in rows])
+        t2 = [(n, r[1], r[4]) for n, r in zip(ns, rows, strict=True)]
+        c2 = [(n, r[2]) for n, r in zip(ns, rows, strict=True)]
+        m2 = [(n, r[3]) for n, r in zip(ns, rows, strict=True)]
+        out = []
+        for a, b in ((t2, ticks), (c2, cmds), (m2, times)):
+            if b:
+                a = sorted(a + b, key=lambda x: x[0])
+            out.append(a)
+        return out
+
+    def _steps(self, data) -> Iterator[None]:
         """The deferred ticks, channel by channel: the Protobuf ones of all the ticks in one scatter each
-        (`felis.logs.wire`), then the JSON ones tick by tick, then the other deferred writes."""
-        ticks, cmds, times = self._ticks, self._cmds, self._times
+        (`felis.logs.wire`), then the JSON ones tick by tick, then the other deferred writes; a slice (``yield``)
+        is one channel's encoding or `SLICE` messages (`felis.logs.background`)."""
+        rows, ticks, cmds, times, rest = data
+        if rows:
+            ticks, cmds, times = self._merge(rows, ticks, cmds, times)
+        ns = stamps = None
         if ticks:
-            self._ticks = []
             ns = [x[0] for x in ticks]
             states = [x[1] for x in ticks]
             stamps = runs(ns)  # the timestamps' bytes, once for every channel
-            put = self._put_js
             if all(s.effort is not None for s in states):
                 msgs = self._js_full.encode_many(ns, np.array([(s.q, s.dq, s.effort) for s in states]), stamps)
             elif all(s.effort is None for s in states):
@@ -178,31 +212,32 @@ class RunLog(McapLog):
             else:
                 msgs = [self._js_noeff.encode(n, (s.q, s.dq)) if s.effort is None else
                         self._js_full.encode(n, (s.q, s.dq, s.effort)) for n, s in zip(ns, states, strict=True)]
-            put.many(ns, msgs)
+            yield
+            yield from _sliced(self._put_js, ns, msgs)
             if self._put_tf is not None:
                 posed = [(n, v) for n, _, v in ticks if v is not None]
                 if posed:
-                    put = self._put_tf
                     at = [n for n, _ in posed]
-                    put.many(at, self._tf.encode_many(at, np.array([v for _, v in posed]),
-                                                      stamps if len(at) == len(ns) else None))
-            self._state_json(ns, states)
+                    msgs = self._tf.encode_many(at, np.array([v for _, v in posed]),
+                                                stamps if len(at) == len(ns) else None)
+                    yield
+                    yield from _sliced(self._put_tf, at, msgs)
+            yield from self._state_json(ns, states)
         if cmds:
-            self._cmds = []
             at = [n for n, _ in cmds]
-            put = self._put_jc
             same = ticks and at == ns  # commands logged with their states (the loop): their timestamps are made
-            put.many(at, self._jc.encode_many(at, np.array([q for _, q in cmds])[:, None, :],
-                                              stamps if same else None))
+            msgs = self._jc.encode_many(at, np.array([q for _, q in cmds])[:, None, :], stamps if same else None)
+            yield
+            yield from _sliced(self._put_jc, at, msgs)
         if times:
-            self._times = []
             if self._put_timing is None:
                 self._put_timing = self.channel("/timing", TIMING.schema, "protobuf")
-            self._put_timing.many([n for n, _ in times],
-                                  TIMING.encode_many(np.array([[c * 1e3] for _, c in times], dtype=float)))
-        super()._write_pending()
+            msgs = TIMING.encode_many(np.array([[c * 1e3] for _, c in times], dtype=float))
+            yield
+            yield from _sliced(self._put_timing, [n for n, _ in times], msgs)
+        yield from super()._steps(rest)
 
-    def _state_json(self, ns: list[int], states: list[State]) -> None:
+    def _state_json(self, ns: list[int], states: list[State]) -> Iterator[None]:
         """``/imu``, ``/contacts``, ``/base`` (felis Protobuf, `felis.logs.messages`: one scatter per channel) and
         ``/faults`` (JSON, when they change) of deferred states, where each state has them."""
         imus = [(n, s.imu) for n, s in zip(ns, states, strict=True) if s.imu is not None]
@@ -215,7 +250,9 @@ class RunLog(McapLog):
                                 np.array([i.accel for _, i in imus], dtype=float), tilt[:, None]], axis=1)
             if self._put_imu is None:
                 self._put_imu = self.channel("/imu", IMU.schema, "protobuf")
-            self._put_imu.many([n for n, _ in imus], IMU.encode_many(v))
+            msgs = IMU.encode_many(v)
+            yield
+            yield from _sliced(self._put_imu, [n for n, _ in imus], msgs)
         nf = len(self._feet)
         cs = [(n, s.contacts) for n, s in zip(ns, states, strict=True)
               if s.contacts is not None and len(s.contacts) == nf]
@@ -223,12 +260,16 @@ class RunLog(McapLog):
             if self._put_contacts is None:
                 self._put_contacts = self.channel("/contacts", self._contacts_msg.schema, "protobuf")
             flags = np.array([c for _, c in cs], dtype=bool)
-            self._put_contacts.many([n for n, _ in cs], self._contacts_msg.encode_many(None, flags))
+            msgs = self._contacts_msg.encode_many(None, flags)
+            yield
+            yield from _sliced(self._put_contacts, [n for n, _ in cs], msgs)
         hs = [(n, s.height) for n, s in zip(ns, states, strict=True) if s.height is not None]
         if hs:
             if self._put_base is None:
                 self._put_base = self.channel("/base", BASE.schema, "protobuf")
-            self._put_base.many([n for n, _ in hs], BASE.encode_many(np.array([[h] for _, h in hs], dtype=float)))
+            msgs = BASE.encode_many(np.array([[h] for _, h in hs], dtype=float))
+            yield
+            yield from _sliced(self._put_base, [n for n, _ in hs], msgs)
         for n, s in zip(ns, states, strict=True):
             f = s.faults
             if f is not None and f is not self._faults_seen:  # the same object: unchanged (the simulation's)
@@ -248,14 +289,17 @@ class RunLog(McapLog):
 
     def tick(self, state: State, command: Command, control_s: float) -> None:
         """One loop tick in one call (what `felis.loop.run_loop` uses): `state`, `command` at the state's time,
-        `timing`."""
-        if self._closed:
+        `timing`. Kept as it comes (the log times are made with the encoding); between chunk boundaries a tick
+        costs one comparison, the body poses and one append."""
+        t = state.t
+        if not t < self._next_t or self._closed:  # a boundary (or a NaN time, or closed): the general path
             self._check_open()
-        ns = self.ns(state.t)  # `state`, inline: this runs every tick
-        self._tick(ns)
-        self._ticks.append((ns, state, None if self._poses is None else self._poses(state)))
-        self._cmds.append((ns, command.q))
-        self._times.append((ns, control_s))
+            self._tick(self.ns(t))
+        poses = self._poses
+        self._rows.append((t, state, command.q, control_s, None if poses is None else poses(state)))
+        bg = self._bg
+        if bg is not None and bg._jobs:
+            bg.nudge()
 
     def command(self, t: float, command: Command) -> None:
         """Log the command actually sent at time ``t`` on ``/joint_commands``."""
@@ -281,6 +325,16 @@ class RunLog(McapLog):
 
     def __enter__(self) -> RunLog:
         return self
+
+
+SLICE = 24  # messages a slice of the writer logs (each `Channel.log` ~2 µs)
+
+
+def _sliced(put, ns: list[int], msgs: list[bytes]) -> Iterator[None]:
+    """``put.many`` in slices of `SLICE` messages, yielding after each."""
+    for i in range(0, len(msgs), SLICE):
+        put.many(ns[i:i + SLICE], msgs[i:i + SLICE])
+        yield
 
 
 def scene_update(scene: RobotScene, ns: int) -> SceneUpdate:
