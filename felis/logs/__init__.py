@@ -1,6 +1,7 @@
 """Run logs (`felis.logs`): MCAP files written and read back, and what is made from them.
 
     mcap.py        McapLog: the one MCAP writer (Foxglove SDK; chunked, indexed, live view)
+    background.py  Background: the writer thread that encodes and writes a log while the loop is in C code
     runlog.py      RunLog: a control run's log (its channels, what a log holds, the crash bound)
     reader.py      read_log → LogData, channel_messages, log_info: a log read back
     schemas.py     JSON schemas by Foxglove's rules for felis's JSON channels
