@@ -98,8 +98,15 @@ def register_train(train_sub) -> None:
                    help="no search: add these motion files (felis eval landing --policy optimum --motions DIR) to "
                    "the library --base as entries of their drop height's shelf, tried on the probes near them")
     b.add_argument("--base", type=Path, metavar="LIBRARY.json",
-                   help="the library --add extends (default: the shipped one, "
+                   help="the library --add or --add-probes extends (default: the shipped one, "
                    f"learning/weights/{DEFAULT_LIBRARY.name})")
+    b.add_argument("--add-probes", type=int, metavar="N",
+                   help="no search: add the probes of an N-point Fibonacci sphere to the --heights shelves of --base, "
+                   "each tried with the motions within --probe-radius of it (a denser grid for a narrower vote)")
+    b.add_argument("--probe-radius", type=float, default=30.0, metavar="DEG",
+                   help="--add-probes: try the motions within this angle of each new probe (default 30)")
+    b.add_argument("--sigma", type=float, metavar="DEG",
+                   help="--add-probes: the vote width of those shelves (default: the library's)")
     b.set_defaults(func=cmd_train_library)
 
 
@@ -224,10 +231,14 @@ def cmd_train_library(args) -> int:
                              f"and {args.fill_rounds}")
     check_target(out, "landing motion library", ParameterError)
     command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    if args.add and args.add_probes is not None:
+        raise ParameterError("--add and --add-probes: one at a time")
     if args.add:
         return _add_to_library(args, out, command)
+    if args.add_probes is not None:
+        return _add_probes_to_library(args, out, command)
     if args.base is not None:
-        raise ParameterError("--base names the library that --add extends; give --add MOTION.json too")
+        raise ParameterError("--base names the library that --add or --add-probes extends; give one of them too")
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
@@ -277,6 +288,33 @@ def _add_to_library(args, out: Path, command: str) -> int:
         print(f"{a['motion']}: {a['height_m']:g} m shelf, drop ({d['roll_deg']:g}, {d['pitch_deg']:g}, "
               f"{d['yaw_deg']:g}) {'lands' if a['landed'] else 'does NOT land'} its own attitude; "
               f"{a['probes_landed']} probes landed by it or its mirror image")
+    print(f"library: {out} (from {base})")
+    return 0
+
+
+def _add_probes_to_library(args, out: Path, command: str) -> int:
+    """``felis train landing-library --add-probes N [--heights H…] [--base LIBRARY]``: `add_probes`."""
+    import json
+
+    from felis.files import write_atomic
+    from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
+    from felis.learning.landing.library_build import add_probes
+
+    base = args.base or DEFAULT_LIBRARY
+    lib = load_library(base)
+    workdir = args.workdir or out.with_suffix(".ckpt")
+    if args.resume and not Path(workdir).is_dir():
+        raise ParameterError(f"--resume: no checkpoints in {workdir}")
+    bar, progress = _stage_bar()
+    with bar:
+        lib = add_probes(lib, args.heights, args.add_probes, radius_deg=args.probe_radius,
+                         max_tilt_deg=args.max_tilt, sigma_deg=args.sigma, workers=args.workers, command=command,
+                         workdir=workdir, resume=args.resume, progress=progress)
+    write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
+    for a in lib.meta["probes_added"][-len(args.heights):]:
+        print(f"{a['height_m']:g} m: {a['probes']} probes added ({a['points']}-point sphere, motions within "
+              f"{a['radius_deg']:g}°), {a['landed_by_some']} of them landed by some motion"
+              + (f"; vote σ {a['sigma_deg']:g}°" if "sigma_deg" in a else ""))
     print(f"library: {out} (from {base})")
     return 0
 

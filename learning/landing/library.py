@@ -20,12 +20,13 @@ each shelf also holds probes, a denser Fibonacci grid of attitudes, and which mo
 images, within `EVAL_RADIUS_DEG`) land each probe. For an attitude u the policy takes the candidate c that
 maximises Σₚ wₚ·[c lands p] over the probes within `RADIUS_DEG`, wₚ = exp(−½(∠(u, p)/`SIGMA_DEG`)²), ties to the
 nearest entry; where no nearby probe is landed by anything, the nearest entry that landed its own drop (else the
-nearest entry). An attitude with u_y < 0 is mirrored first and its choice mirrored back.
+nearest entry). An attitude with u_y < 0 is mirrored first and its choice mirrored back. A shelf whose probes are
+denser than the library's (``felis train landing-library --add-probes``) may vote with its own, narrower σ.
 
-**File** (`load_library`, JSON): ``{"format": FORMAT, "version": 1, "made_by", ["added", "extended_by",]
-"radius_deg", "sigma_deg",
-"shelves": [{"height_m", "entries": [{"up", "drop", "landed", "motion_x"}], "probes": [{"up", "lands"}]}]}``;
-``lands`` lists candidate ids, 2·entry + (1 if mirrored). Made by ``felis train landing-library``.
+**File** (`load_library`, JSON): ``{"format": FORMAT, "version": 1, "made_by", ["added", "extended_by",
+"probes_added",] "radius_deg", "sigma_deg", "shelves": [{"height_m", ["sigma_deg",] "entries": [{"up", "drop",
+"landed", "motion_x"}], "probes": [{"up", "lands"}]}]}``; ``lands`` lists candidate ids, 2·entry + (1 if
+mirrored). Made by ``felis train landing-library``.
 """
 
 from __future__ import annotations
@@ -97,6 +98,7 @@ class Shelf:
     probe_up: np.ndarray
     lands: np.ndarray
     drops: list | None = None  # the entries' drops (dicts), for the record
+    sigma_deg: float | None = None  # this shelf's vote width (its probes' spacing); None: the library's
 
     def candidates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(up (2E, 3), x (2E, 55), landed (2E,)): each entry, then its mirror image, interleaved."""
@@ -157,7 +159,8 @@ class MotionLibrary:
         return min(self.shelves, key=lambda s: abs(math.log(s.height_m / h)))
 
     def choose(self, u: np.ndarray, height_m: float) -> np.ndarray:
-        return self.shelf(height_m).choose(u, self.radius_deg, self.sigma_deg)[0]
+        s = self.shelf(height_m)
+        return s.choose(u, self.radius_deg, s.sigma_deg or self.sigma_deg)[0]
 
     def as_dict(self) -> dict:
         shelves = []
@@ -168,7 +171,8 @@ class MotionLibrary:
                        for i in range(len(s.up))]
             probes = [{"up": [round(float(v), 6) for v in s.probe_up[p]],
                        "lands": [int(c) for c in np.flatnonzero(s.lands[p])]} for p in range(len(s.probe_up))]
-            shelves.append({"height_m": s.height_m, "entries": entries, "probes": probes})
+            shelves.append({"height_m": s.height_m, **({} if s.sigma_deg is None else {"sigma_deg": s.sigma_deg}),
+                            "entries": entries, "probes": probes})
         return {"format": FORMAT, "version": VERSION, **self.meta, "radius_deg": self.radius_deg,
                 "sigma_deg": self.sigma_deg, "shelves": shelves}
 
@@ -228,9 +232,14 @@ def library_from_dict(doc) -> MotionLibrary:
         U = np.array(up)
         if np.any(np.abs(np.linalg.norm(U, axis=1) - 1.0) > 1e-3):
             raise ParameterError(f"{where}: every 'up' must be a unit vector")
+        sig = s.get("sigma_deg")
+        if sig is not None and (isinstance(sig, bool) or not isinstance(sig, int | float)
+                                or not (math.isfinite(sig) and sig > 0)):
+            raise ParameterError(f"{where}: sigma_deg must be a positive number")
         shelves.append(Shelf(float(h), U, np.array(x), np.array(landed), np.array(pup).reshape(-1, 3), lands,
-                             drops if all(d is not None for d in drops) else None))
-    meta = {k: doc[k] for k in ("made_by", "grid", "search", "added", "extended_by") if k in doc}
+                             drops if all(d is not None for d in drops) else None,
+                             None if sig is None else float(sig)))
+    meta = {k: doc[k] for k in ("made_by", "grid", "search", "added", "extended_by", "probes_added") if k in doc}
     return MotionLibrary(shelves, float(rs[0]), float(rs[1]), meta)
 
 

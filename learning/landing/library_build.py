@@ -116,10 +116,10 @@ def robustify(sim, ups: np.ndarray, xs: np.ndarray, height_m: float, *, offset_d
 
 def try_probes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndarray, height_m: float,
                progress: Callable[[int, int], None] | None = None, done: np.ndarray | None = None,
-               save: Callable[[np.ndarray], None] | None = None) -> np.ndarray:
-    """(P, 2E) bool: candidate c lands probe p, tried where they are within `EVAL_RADIUS_DEG` (module doc).
-    ``done``: (P, C ≤ 2E) results so far (1 lands, 0 not, −1 not yet tried: a checkpoint, perhaps of fewer
-    entries); ``save(results)`` after each batch."""
+               save: Callable[[np.ndarray], None] | None = None, radius_deg: float = EVAL_RADIUS_DEG) -> np.ndarray:
+    """(P, 2E) bool: candidate c lands probe p, tried where they are within ``radius_deg`` (`EVAL_RADIUS_DEG`,
+    module doc). ``done``: (P, C ≤ 2E) results so far (1 lands, 0 not, −1 not yet tried: a checkpoint, perhaps of
+    fewer entries); ``save(results)`` after each batch."""
     from felis.learning.landing.optimum import evaluate
 
     cand_up, cand_x, _ = Shelf(height_m, shelf_up, shelf_x, np.ones(len(shelf_up), bool), probe_up,
@@ -128,7 +128,7 @@ def try_probes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndar
     if done is not None and done.ndim == 2 and done.shape[0] == len(probe_up):
         c = min(done.shape[1], len(cand_up))  # a checkpoint of more candidates: the fill stage's (same order)
         res[:, :c] = done[:, :c]
-    near = angles_deg(probe_up, cand_up) <= EVAL_RADIUS_DEG
+    near = angles_deg(probe_up, cand_up) <= radius_deg
     pairs = np.argwhere(near & (res < 0))  # (probe, candidate) still to try
     drops = [up_drop(u, height_m) for u in probe_up]
     total = int(np.count_nonzero(near))
@@ -319,6 +319,64 @@ def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, st
         sim.close()
     meta = dict(lib.meta)
     meta["added"] = list(meta.get("added", [])) + added
+    if command:
+        meta["extended_by"] = list(meta.get("extended_by", [])) + [command]
+    return MotionLibrary(list(shelves.values()), lib.radius_deg, lib.sigma_deg, meta=meta)
+
+
+def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, radius_deg: float = EVAL_RADIUS_DEG,
+               max_tilt_deg: float = MAX_TILT_DEG, sigma_deg: float | None = None, workers: int | None = None,
+               command: str = "", workdir: str | Path | None = None, resume: bool = False,
+               progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
+    """``lib`` with more probes on the shelves of ``heights``: the attitudes of a ``points``-point Fibonacci sphere
+    (tilt ≤ ``max_tilt_deg``, u_y ≥ 0; those already probed are skipped), each tried with the candidates within
+    ``radius_deg`` of it; the shelf's other results are kept. A denser grid lets a narrower vote (``sigma_deg``,
+    the shelf's own; None: the library's) tell neighbouring attitudes apart: at 3 m the choice is limited by the
+    probes' spacing (docs/landing.md). Checkpoint per height in ``workdir/<h>m/probes_added.npy`` (``resume``).
+    The meta records each addition (``probes_added``) and the command."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+
+    if points < 1 or not 0 < radius_deg <= 180 or not 0 < max_tilt_deg <= 180:
+        raise ParameterError("--add-probes: points ≥ 1, a radius and a maximum tilt within (0, 180] degrees")
+    if sigma_deg is not None and not (math.isfinite(sigma_deg) and sigma_deg > 0):
+        raise ParameterError(f"--sigma must be a positive number of degrees, got {sigma_deg}")
+    shelves = {s.height_m: s for s in lib.shelves}
+    targets = []
+    for h in heights:
+        shelf = next((s for hh, s in shelves.items() if math.isclose(hh, float(h), rel_tol=1e-6)), None)
+        if shelf is None:
+            raise ParameterError(f"--heights {h:g}: the library has shelves at "
+                                 f"{', '.join(f'{s:g}' for s in shelves)} m only")
+        targets.append(shelf)
+    added = []
+    sim = BatchLandingSim(nthread=workers)
+    try:
+        for shelf in targets:
+            h = shelf.height_m
+            new = fibonacci_ups(points, max_tilt_deg)
+            if len(shelf.probe_up):
+                new = new[angles_deg(new, shelf.probe_up).min(axis=1) > 1e-3]
+            ck = None if workdir is None else Path(workdir) / f"{h:g}m" / "probes_added.npy"
+            done = None
+            if ck is not None:
+                ck.parent.mkdir(parents=True, exist_ok=True)
+                if resume and ck.exists():
+                    done = np.load(ck)
+            lands = try_probes(sim, shelf.up, shelf.x, new, h, done=done, radius_deg=radius_deg,
+                               save=None if ck is None else (lambda r, ck=ck: np.save(ck, r)),
+                               progress=None if progress is None else
+                               (lambda d, t, h=h: progress(f"{h:g} m new probes", d, t)))
+            shelves[h] = Shelf(h, shelf.up, shelf.x, shelf.landed, np.concatenate([shelf.probe_up, new]),
+                               np.concatenate([shelf.lands, lands]), shelf.drops,
+                               sigma_deg if sigma_deg is not None else shelf.sigma_deg)
+            added.append({"height_m": h, "points": int(points), "radius_deg": float(radius_deg),
+                          "max_tilt_deg": float(max_tilt_deg), "probes": int(len(new)),
+                          "landed_by_some": int(lands.any(axis=1).sum()),
+                          **({} if sigma_deg is None else {"sigma_deg": float(sigma_deg)})})
+    finally:
+        sim.close()
+    meta = dict(lib.meta)
+    meta["probes_added"] = list(meta.get("probes_added", [])) + added
     if command:
         meta["extended_by"] = list(meta.get("extended_by", [])) + [command]
     return MotionLibrary(list(shelves.values()), lib.radius_deg, lib.sigma_deg, meta=meta)

@@ -268,4 +268,86 @@ def test_add_refuses_a_motion_for_another_height_or_without_its_drop_in_one_line
         assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "o.json").exists()
     r = _felis("train", "landing-library", "--base", str(DEFAULT_LIBRARY), "--out", str(tmp_path / "o.json"))
-    assert r.returncode != 0 and "give --add MOTION.json too" in r.stderr
+    assert r.returncode != 0 and "give one of them too" in r.stderr
+
+
+def test_a_shelf_with_its_own_narrow_sigma_follows_its_nearest_probes_and_keeps_it_in_the_file():
+    """Probe 14.0° is landed by entry B only, probes 17.5–18.5° by entry A only; at 14.2° a wide vote (σ 6°) sums
+    A's three farther probes, a narrow one (the shelf's σ 1°, as `--add-probes --sigma` writes) follows the nearest."""
+    x = np.random.default_rng(2).uniform(-1, 1, (2, DIMS))
+    probes = np.array([_unit(a) for a in (14.0, 17.5, 18.0, 18.5)])
+    lands = np.zeros((4, 4), dtype=bool)
+    lands[0, 2] = True  # entry B (candidate 2)
+    lands[1:, 0] = True  # entry A (candidate 0)
+    shelf = Shelf(3.0, np.array([_unit(10.0), _unit(20.0)]), x, np.array([True, True]), probes, lands)
+    wide = MotionLibrary([shelf], sigma_deg=6.0)
+    assert np.array_equal(wide.choose(_unit(14.2), 3.0), x[0])
+    narrow = MotionLibrary([Shelf(**{**shelf.__dict__, "sigma_deg": 1.0})], sigma_deg=6.0)
+    assert np.array_equal(narrow.choose(_unit(14.2), 3.0), x[1])
+    doc = json.loads(json.dumps(narrow.as_dict()))
+    assert doc["shelves"][0]["sigma_deg"] == 1.0 and doc["sigma_deg"] == 6.0
+    back = library_from_dict(doc)
+    assert back.shelves[0].sigma_deg == 1.0 and np.array_equal(back.choose(_unit(14.2), 3.0), x[1])
+    for bad in (0, -1, "2", True, float("nan")):
+        doc["shelves"][0]["sigma_deg"] = bad
+        with pytest.raises(ParameterError, match="shelf 0: sigma_deg must be a positive number"):
+            library_from_dict(doc)
+
+
+def test_add_probes_tries_a_denser_grid_on_a_shelf_keeps_what_it_had_and_resumes(tmp_path):
+    """`felis train landing-library --add-probes N --heights 3`: the new probes (an N-point sphere's attitudes)
+    are tried with the 3 m motions near them; the old probes' results and the 1 m shelf are unchanged; a resumed
+    run reads the checkpoint and writes the same library; eval runs it."""
+    out, ck = tmp_path / "dense.json", tmp_path / "ck"
+    argv = ("train", "landing-library", "--add-probes", "40", "--heights", "3", "--probe-radius", "8", "--sigma",
+            "2", "--out", str(out), "--workdir", str(ck), "--workers", "2")
+    r = _felis(*argv)
+    assert r.returncode == 0, r.stderr
+    assert "3 m: " in r.stdout and "probes added (40-point sphere, motions within 8°)" in r.stdout
+    base, dense = load_library(), load_library(out)
+    b3, d3 = base.shelf(3.0), dense.shelf(3.0)
+    n_new = len(d3.probe_up) - len(b3.probe_up)
+    assert n_new > 0 and d3.sigma_deg == 2.0 and dense.sigma_deg == base.sigma_deg
+    assert np.array_equal(d3.probe_up[:len(b3.probe_up)], b3.probe_up) and np.array_equal(d3.lands[:len(b3.lands)],
+                                                                                           b3.lands)
+    cand_up = d3.candidates()[0]
+    new_up, new_lands = d3.probe_up[len(b3.probe_up):], d3.lands[len(b3.lands):]
+    ang = np.degrees(np.arccos(np.clip(new_up @ cand_up.T, -1, 1)))
+    assert not np.any(new_lands & (ang > 8.0 + 1e-9))  # tried only within the radius
+    assert np.all(np.degrees(np.arccos(np.clip(new_up[:, 2], -1, 1))) <= 100.0 + 1e-9) and np.all(new_up[:, 1] >= 0)
+    assert dense.shelf(1.0).sigma_deg is None and np.array_equal(dense.shelf(1.0).lands, base.shelf(1.0).lands)
+    doc = json.loads(out.read_text())
+    assert doc["probes_added"][-1]["probes"] == n_new and doc["extended_by"][-1].startswith(
+        "felis train landing-library --add-probes 40")
+    assert (ck / "3m" / "probes_added.npy").exists()
+    out2 = tmp_path / "again.json"
+    r = _felis(*[a if a != str(out) else str(out2) for a in argv], "--resume")
+    assert r.returncode == 0, r.stderr
+    doc2 = json.loads(out2.read_text())
+    assert doc2["shelves"] == doc["shelves"]
+    r = _felis("eval", "landing", "--drops", "random:2", "--height", "3", "--policy", str(out), "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["total"] == 2
+
+
+def test_add_probes_refuses_a_height_without_a_shelf_and_bad_numbers_in_one_line(tmp_path):
+    o = tmp_path / "o.json"
+    for argv, words in ((("--add-probes", "10", "--heights", "2"), "the library has shelves at 1, 3 m only"),
+                        (("--add-probes", "10", "--sigma", "0"), "--sigma must be a positive number"),
+                        (("--add-probes", "0"), "points ≥ 1"),
+                        (("--add-probes", "10", "--add", str(DEFAULT_LIBRARY.parent / "landing_hard_drop.json")),
+                         "--add and --add-probes: one at a time")):
+        r = _felis("train", "landing-library", *argv, "--out", str(o))
+        assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not o.exists()
+
+
+@pytest.mark.parametrize("height, want", [(1.0, (55, 44)), (3.0, (47, 33))])
+def test_the_shipped_library_lands_what_the_docs_say_on_random_100(height, want):
+    """README and docs/landing.md: the default policy on `random:100` seeds 0 and 1. The rollouts are deterministic
+    on a machine; ±1 allows for another CPU's floating point at a drop on the edge."""
+    for seed, n in zip((0, 1), want, strict=True):
+        r = _felis("eval", "landing", "--drops", "random:100", "--seed", str(seed), "--height", f"{height:g}", "--json")
+        assert r.returncode == 0, r.stderr
+        got = json.loads(r.stdout)["landed"]
+        assert abs(got - n) <= 1, f"{height:g} m seed {seed}: {got} landed, the docs say {n}"
