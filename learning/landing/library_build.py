@@ -317,11 +317,7 @@ def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, st
                           "landed": bool(verdict.landed), "probes_landed": int(lands[:, -2:].any(axis=1).sum())})
     finally:
         sim.close()
-    meta = dict(lib.meta)
-    meta["added"] = list(meta.get("added", [])) + added
-    if command:
-        meta["extended_by"] = list(meta.get("extended_by", [])) + [command]
-    return MotionLibrary(list(shelves.values()), lib.radius_deg, lib.sigma_deg, meta=meta)
+    return _extended(lib, shelves, "added", added, command)
 
 
 def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, radius_deg: float = EVAL_RADIUS_DEG,
@@ -375,8 +371,13 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
                           **({} if sigma_deg is None else {"sigma_deg": float(sigma_deg)})})
     finally:
         sim.close()
+    return _extended(lib, shelves, "probes_added", added, command)
+
+
+def _extended(lib: MotionLibrary, shelves: dict, key: str, added: list, command: str) -> MotionLibrary:
+    """``lib`` with ``shelves`` (by height) and the record of what was added (``meta[key]``, ``extended_by``)."""
     meta = dict(lib.meta)
-    meta["probes_added"] = list(meta.get("probes_added", [])) + added
+    meta[key] = list(meta.get(key, [])) + added
     if command:
         meta["extended_by"] = list(meta.get("extended_by", [])) + [command]
     return MotionLibrary(list(shelves.values()), lib.radius_deg, lib.sigma_deg, meta=meta)
