@@ -446,12 +446,14 @@ def test_a_late_reply_is_never_taken_as_the_next_answer(cat_bus):
     s.set("goal_position", 3000)
     present = s.get("present_position")
     assert abs(present - 3000) > 100  # torque off: the horn is not at the goal
-    with DynamixelBus(cat_bus.port, BAUD, retries=0, timeout_margin_ms=10.0) as b:  # a pty's default slack
+    # 30 ms of slack: the last read must not time out on a loaded machine (a 10 ms slack did, once, under two
+    # test workers); the 80 ms delay still puts every delayed reply well past its time-out.
+    with DynamixelBus(cat_bus.port, BAUD, retries=0, timeout_margin_ms=30.0) as b:
         b.ping(1)
-        cat_bus.faults.delay_ms = 40  # every reply now comes after its time-out
+        cat_bus.faults.delay_ms = 80  # every reply now comes after its time-out
         with pytest.raises(NoReplyError):
             b.read_raw(1, 132, 4)  # Present Position
-        time.sleep(0.1)  # its reply arrives late and waits in the input
+        time.sleep(0.2)  # its reply arrives late and waits in the input
         cat_bus.faults.delay_ms = 0
         got = int.from_bytes(b.read_raw(1, 116, 4), "little")  # Goal Position, same length
         assert got == 3000, f"read {got}: the late Present Position reply ({present}) taken as the answer"
