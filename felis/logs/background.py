@@ -145,6 +145,17 @@ class Background:
                 jobs.popleft()
         self.check()
 
+    def abandon(self) -> None:
+        """End the writer without writing what is queued: its log was dropped without `close` (a weak finalizer
+        calls this, from whichever thread collects the log; it does not wait for the thread)."""
+        if self._stop:
+            return
+        self._stop = True
+        self._jobs.clear()
+        if self._go.locked():
+            self._go.release()
+        _leave()
+
     def close(self) -> None:
         """`drain`, then end the writer thread. Idempotent; the error of a job is raised after the thread ended."""
         try:

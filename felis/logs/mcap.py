@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -186,6 +187,7 @@ class McapLog:
         bg = self._bg
         if bg is None:
             self._bg = bg = Background()
+            weakref.finalize(self, bg.abandon)  # a log dropped without close: its writer (and the switch interval) go
         elif bg.pending:
             self._background(bg.drain)
         bg.submit(self._job(self._take()))

@@ -143,3 +143,24 @@ def test_an_error_in_deferred_work_on_the_writer_stops_the_run_with_a_log_error(
     log.close()  # the rest is written and the file finished
     data = read_log(tmp_path / "run.mcap")
     assert data.complete and 0 < data.counts["/joint_states"] <= i + 1
+
+
+def test_a_log_dropped_without_close_ends_its_writer_and_restores_the_switch_interval(tmp_path):
+    import gc
+
+    from felis.hal import Command, State
+
+    before = sys.getswitchinterval()
+    spec = load_spec("cat")
+    log = RunLog(tmp_path / "run.mcap", spec)
+    for i in range(40):
+        log.tick(State(t=i / 100, q=np.zeros(spec.n), dq=np.zeros(spec.n)), Command(q=np.zeros(spec.n)), 0.0)
+        time.sleep(0.002)
+    bg = log._bg
+    assert bg is not None and sys.getswitchinterval() < before
+    assert _wait(lambda: (bg.nudge(), not bg.pending)[1])  # the writer writes what it was handed when nudged
+    del log
+    gc.collect()
+    bg._thread.join(timeout=5)
+    assert not bg._thread.is_alive()
+    assert sys.getswitchinterval() == pytest.approx(before, abs=1e-9)
