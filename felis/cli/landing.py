@@ -215,10 +215,9 @@ def _stage_bar():
 
 
 def cmd_train_library(args) -> int:
-    import json
     import shlex
 
-    from felis.files import check_target, write_atomic
+    from felis.files import check_target
     from felis.learning.landing.library_build import build_library
 
     out = Path(args.out)
@@ -249,7 +248,7 @@ def cmd_train_library(args) -> int:
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address, workdir=workdir,
                             resume=args.resume, command=command, fill_generations=args.fill_generations,
                             fill_rounds=args.fill_rounds, progress=progress)
-    write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
+    _write_library(out, lib)
     for s in lib.shelves:
         print(f"{s.height_m:g} m: {int(s.landed.sum())} of {len(s.landed)} entries (the optimum, its robust "
               f"twins, the fills) land their own attitude; "
@@ -258,11 +257,17 @@ def cmd_train_library(args) -> int:
     return 0
 
 
-def _add_to_library(args, out: Path, command: str) -> int:
-    """``felis train landing-library --add MOTION.json… [--base LIBRARY]``: `add_motions`, written to ``out``."""
+def _write_library(out: Path, lib) -> None:
     import json
 
     from felis.files import write_atomic
+
+    write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
+
+
+def _add_to_library(args, out: Path, command: str) -> int:
+    """``felis train landing-library --add MOTION.json… [--base LIBRARY]``: `add_motions`, written to ``out``."""
+
     from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
     from felis.learning.landing.library_build import add_motions
     from felis.learning.landing.motion import load_motion
@@ -282,7 +287,7 @@ def _add_to_library(args, out: Path, command: str) -> int:
     bar, progress = _stage_bar()
     with bar:
         lib = add_motions(lib, motions, workers=args.workers, command=command, progress=progress)
-    write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
+    _write_library(out, lib)
     for a in lib.meta["added"][-len(motions):]:
         d = a["drop"]
         print(f"{a['motion']}: {a['height_m']:g} m shelf, drop ({d['roll_deg']:g}, {d['pitch_deg']:g}, "
@@ -294,9 +299,7 @@ def _add_to_library(args, out: Path, command: str) -> int:
 
 def _add_probes_to_library(args, out: Path, command: str) -> int:
     """``felis train landing-library --add-probes N [--heights H…] [--base LIBRARY]``: `add_probes`."""
-    import json
 
-    from felis.files import write_atomic
     from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
     from felis.learning.landing.library_build import add_probes
 
@@ -310,7 +313,7 @@ def _add_probes_to_library(args, out: Path, command: str) -> int:
         lib = add_probes(lib, args.heights, args.add_probes, radius_deg=args.probe_radius,
                          max_tilt_deg=args.max_tilt, sigma_deg=args.sigma, workers=args.workers, command=command,
                          workdir=workdir, resume=args.resume, progress=progress)
-    write_atomic(out, json.dumps(lib.as_dict(), separators=(",", ":")) + "\n", "landing motion library")
+    _write_library(out, lib)
     for a in lib.meta["probes_added"][-len(args.heights):]:
         print(f"{a['height_m']:g} m: {a['probes']} probes added ({a['points']}-point sphere, motions within "
               f"{a['radius_deg']:g}°), {a['landed_by_some']} of them landed by some motion"
