@@ -175,10 +175,14 @@ class RunLog(McapLog):
         return rows, ticks, cmds, times, super()._take()
 
     def _ns_many(self, t: list[float]) -> list[int]:
-        """`ns` of many run times at once."""
-        t = np.array(t, dtype=float)
-        ok = np.isfinite(t) & (t > 0) & (t < 1e9)
-        return (self.start_ns + np.where(ok, np.rint(np.where(ok, t, 0.0) * 1e9), 0.0).astype(np.int64)).tolist()
+        """`ns` of many run times at once (the same integers; times past 1e9 s, beyond int64 once in ns, one by
+        one through `ns`)."""
+        a = np.array(t, dtype=float)
+        ok = np.isfinite(a) & (a > 0) & (a < 1e9)
+        out = (self.start_ns + np.where(ok, np.rint(np.where(ok, a, 0.0) * 1e9), 0.0).astype(np.int64)).tolist()
+        for i in np.flatnonzero(np.isfinite(a) & (a >= 1e9)):
+            out[i] = self.ns(float(a[i]))
+        return out
 
     def _merge(self, rows: list[tuple], ticks: list[tuple], cmds: list[tuple], times: list[tuple]):
         """The ticks of `tick` (rows) and of `state`, `command`, `timing` as (ns, …) lists, in time order."""

@@ -333,7 +333,8 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     from felis.learning.landing.evaluate import BatchLandingSim
 
     if points < 1 or not 0 < radius_deg <= 180 or not 0 < max_tilt_deg <= 180:
-        raise ParameterError("--add-probes: points ≥ 1, a radius and a maximum tilt within (0, 180] degrees")
+        raise ParameterError(f"--add-probes needs points ≥ 1, and --probe-radius and --max-tilt within (0, 180] "
+                             f"degrees; got {points} points, radius {radius_deg:g}°, maximum tilt {max_tilt_deg:g}°")
     if sigma_deg is not None and not (math.isfinite(sigma_deg) and sigma_deg > 0):
         raise ParameterError(f"--sigma must be a positive number of degrees, got {sigma_deg}")
     shelves = {s.height_m: s for s in lib.shelves}
