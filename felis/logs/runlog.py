@@ -38,19 +38,23 @@ Protobuf ones of all the kept ticks filled into templates in one numpy scatter p
 `felis.logs.messages`). Done together they cost less than one tick at a time between physics steps, which evict the
 interpreter's working set from the CPU caches; the per-tick channels are all Protobuf because formatting four of
 them as JSON text was 40 % of the log's cost. The encoding, writing and finishing of a chunk run on a writer thread
-(`felis.logs.background`) while the loop's thread waits in the physics step or its sleep. A `State` and a
-`Command` are therefore not to be changed after they are logged (the robots make new ones each tick). The live
-view gets them in the same batches: a viewer sees a run at most 2 × `FLUSH_S` plus a tick late. Events (``/log``)
-and messages are written at once.
+(`felis.logs.background`) while the loop's thread waits in the physics step or its sleep, when the run keeps pace
+with the clock; a simulation more than `felis.logs.mcap.FAST` times faster than real time never waits, and there
+the writer only competes with it for the interpreter and the CPU, so it finishes its chunks itself
+(`McapLog._boundary`). A `State` and a `Command` are therefore not to be changed after they are logged (the
+robots make new ones each tick). The live view gets them in the same batches: a viewer sees a run at most
+2 × `FLUSH_S` plus a tick late. Events (``/log``) and messages are written at once.
 
 Crash safety: the file is chunked (lz4) and indexed. At the start of the first tick by which both `FLUSH_S` of run
 time and `FLUSH_WALL_S` (half of it) of wall time have passed since the last, the chunk's ticks go to the writer
 thread, which writes them, finishes the chunk and hands it to the operating system; the chunk handed over before is
-written first if the writer has not finished it, so at most one handed-over chunk is ever unwritten. A process
+written first if the writer has not finished it, so at most one handed-over chunk is ever unwritten (a run more
+than `FAST` times faster than real time does this on its own thread: nothing is left with a writer). A process
 killed mid-run therefore loses at most the last 2 × `FLUSH_S` plus two ticks (0.1 s at 100 Hz) of a run that keeps
 pace with the clock (hardware, servo-in-the-loop, a real-time simulation), and a simulation running faster than
 real time at most the ticks of its last 2 × `FLUSH_WALL_S` of wall time, plus two, plus two × `FLUSH_S` / 4 of
-run time (the chunk boundary is looked for that often). Finishing a chunk costs about
+run time (the chunk boundary is looked for at least that often, or every quarter of the run time since the last
+chunk, which in a fast simulation is about a quarter of `FLUSH_WALL_S` of wall time). Finishing a chunk costs about
 half a millisecond whatever it holds (on the writer thread).
 `felis.logs.reader.read_log` walks the records of the intact prefix
 and reports ``complete=False`` for a cut file. (No ``fsync``: a power cut may lose the page cache.)

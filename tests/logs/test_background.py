@@ -4,6 +4,7 @@ one written on the loop's thread."""
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 import time
@@ -77,7 +78,7 @@ def test_an_error_on_the_writer_is_raised_once_on_the_callers_next_check_and_dro
         bg.close()
 
 
-def _run(path, spec, how: str, ticks: int = 120):
+def _run(path, spec, how: str, ticks: int = 120, sleep: float = 0.001):
     """A run of ``ticks`` at 100 Hz with a short sleep each tick (the writer's chance, as a physics step's), logged
     by `RunLog.tick` (``how`` 'tick') or by `state`, `command`, `timing`; returns the writer's slice count."""
     rng = np.random.default_rng(3)
@@ -99,26 +100,34 @@ def _run(path, spec, how: str, ticks: int = 120):
             log.timing(t, 1e-4 * i)
         if i == 60:
             log.event(t, "clamp", joints=["tail_yaw"])
-        time.sleep(0.001)
+        time.sleep(sleep)
         if log._bg is not None:
             slices = log._bg.slices
     log.close({"ticks": ticks})
     return slices
 
 
-@pytest.mark.parametrize("background", [True, False])
+@pytest.mark.parametrize("mode", ["writer", "fast", "inline"])
 @pytest.mark.parametrize("how", ["tick", "parts"])
-def test_a_run_log_written_by_the_writer_thread_equals_one_written_on_the_loop(tmp_path, monkeypatch, background,
-                                                                                how):
+def test_a_run_log_written_by_the_writer_thread_equals_one_written_on_the_loop(tmp_path, monkeypatch, mode, how):
+    """'writer': every chunk through the writer thread (`mcap.FAST` infinite: as a run at the clock's pace);
+    'fast': a run far faster than real time finishes its chunks on its own thread and never starts a writer;
+    'inline': without `mcap.BACKGROUND`."""
     spec = load_spec("cat")
     ref = tmp_path / "ref.mcap"
     monkeypatch.setattr(mcap, "BACKGROUND", False)
     _run(ref, spec, "parts")
-    monkeypatch.setattr(mcap, "BACKGROUND", background)
+    monkeypatch.setattr(mcap, "BACKGROUND", mode != "inline")
+    if mode == "writer":
+        monkeypatch.setattr(mcap, "FAST", math.inf)
     path = tmp_path / "run.mcap"
-    slices = _run(path, spec, how)
-    if background:
-        assert slices > 0, "the writer thread wrote nothing"
+    if mode == "fast":  # no sleep: hundreds of times faster than real time
+        seen = []
+        monkeypatch.setattr(mcap.McapLog, "_handoff", lambda self: seen.append(1))
+        assert _run(path, spec, how, sleep=0.0) == 0 and seen == [], "a run this fast should not start a writer"
+    else:
+        slices = _run(path, spec, how)
+        assert (slices > 0) == (mode == "writer"), "the writer thread wrote nothing"
     a, b = read_log(ref), read_log(path)
     assert a.complete and b.complete
     assert a.counts == b.counts and a.counts["/joint_states"] == 120 and a.counts["/timing"] == 120
@@ -127,7 +136,8 @@ def test_a_run_log_written_by_the_writer_thread_equals_one_written_on_the_loop(t
     assert a.events == b.events and b.summary == {"ticks": 120}
 
 
-def test_an_error_in_deferred_work_on_the_writer_stops_the_run_with_a_log_error(tmp_path):
+def test_an_error_in_deferred_work_on_the_writer_stops_the_run_with_a_log_error(tmp_path, monkeypatch):
+    monkeypatch.setattr(mcap, "FAST", math.inf)  # chunks through the writer, however fast this runs
     spec = load_spec("cat")
     from felis.hal import Command, State
 
@@ -145,9 +155,10 @@ def test_an_error_in_deferred_work_on_the_writer_stops_the_run_with_a_log_error(
     assert data.complete and 0 < data.counts["/joint_states"] <= i + 1
 
 
-def test_a_log_dropped_without_close_ends_its_writer_and_restores_the_switch_interval(tmp_path):
+def test_a_log_dropped_without_close_ends_its_writer_and_restores_the_switch_interval(tmp_path, monkeypatch):
     import gc
 
+    monkeypatch.setattr(mcap, "FAST", math.inf)
     from felis.hal import Command, State
 
     before = sys.getswitchinterval()
