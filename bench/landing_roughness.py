@@ -18,14 +18,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from learning.landing.library import DEFAULT_LIBRARY, angles_deg, load_library  # noqa: E402
+from felis.learning.landing.library import DEFAULT_LIBRARY, angles_deg, load_library
 
 BINS = ((0.0, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, 3.0), (3.0, 5.0), (5.0, 8.0))
 

@@ -1,0 +1,49 @@
+"""``bench/landing_touchdown.py``: the library with the legs' touchdown offsets closed on the IMU."""
+
+import math
+
+import numpy as np
+from conftest import load_bench
+
+from felis.learning.landing.library import LibraryBatch, load_library
+from felis.learning.landing.policy import DROP_HEIGHT_M
+
+
+def _it(roll_deg, pitch_deg, h):
+    it = np.zeros((1, 15))
+    it[0, 4] = math.radians(roll_deg) / math.pi
+    it[0, 5] = math.radians(pitch_deg) / (math.pi / 2)
+    it[0, 6] = h / DROP_HEIGHT_M
+    return it
+
+
+def test_the_offsets_follow_the_imu_below_on_and_are_held_from_freeze():
+    bench = load_bench("landing_touchdown")
+    lib = load_library()
+    args = (lib, [3.0], 120, 10.0)
+    fb, plain = bench.TouchdownFeedback(*args, k=0.5, on_m=0.6, freeze_m=0.2), LibraryBatch(*args)
+    rows = np.array([0])
+    steps = [(0.0, 20.0, -10.0, 2.9), (0.01, 20.0, -10.0, 0.5), (0.02, 80.0, 0.0, 0.4), (0.03, 30.0, -10.0, 0.3),
+             (0.04, 10.0, 5.0, 0.15), (0.05, -10.0, -5.0, 0.1)]
+    offset, held = np.zeros(12), None
+    for t, roll, pitch, h in steps:
+        it = _it(roll, pitch, h)
+        v = fb(it, np.array([t]), rows)[0] - plain(it, np.array([t]), rows)[0]
+        offset = offset + v * 0.01
+        want = np.zeros(12)
+        if 0.2 <= h < 0.6 and abs(roll) < 60:
+            want[bench.PITCH], want[bench.ROLL] = -0.5 * math.radians(pitch), -0.5 * math.radians(roll)
+        elif h < 0.2:  # held: what it was at the last tick above 0.2 m
+            want = held
+        np.testing.assert_allclose(offset, want, atol=1e-12, err_msg=f"t={t}")
+        held = offset.copy()
+
+
+def test_gain_zero_is_the_library():
+    bench = load_bench("landing_touchdown")
+    from felis.learning.landing.evaluate import run_drops
+    from felis.scenarios.drop import drops_from
+
+    drops = drops_from("random:4", seed=2, height=1.0)
+    assert bench.landed(drops, 0.0, 0.6, 0.2) == sum(o.landed for o in run_drops(drops, "library"))
+    assert bench.landed(drops, 1e-12, 0.6, 0.2) == bench.landed(drops, 0.0, 0.6, 0.2)
