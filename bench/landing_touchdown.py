@@ -10,6 +10,11 @@ BatchLandingSim`) against the library alone.
 
     python bench/landing_touchdown.py [--height 3] [--seeds 2 3] [--gains 0 0.1 -0.1 0.3 1] [--on 0.6]
         [--freeze 0.2] [--json]
+    python bench/landing_touchdown.py --search 16 --seeds 4 --gains 0 0.3 1   # the feedback inside the search
+
+``--search N``: the closed loop where it belongs, inside the search: each of N drops gets its own motion searched
+with the feedback on (`robustness`), and each motion that lands is tried from attitudes 1° and 2° away (roll and
+pitch, both ways): does a closed-loop touchdown make a landing hold over a wider patch of attitudes?
 """
 
 from __future__ import annotations
@@ -32,18 +37,19 @@ PITCH, ROLL = [4, 6, 8, 10], [5, 7, 9, 11]  # the legs' joints in the descriptio
 LIMIT = math.radians(60.0)
 
 
-class TouchdownFeedback(LibraryBatch):
-    """`LibraryBatch` plus the legs' offsets −k·(pitch, roll) below ``on_m``, held from ``freeze_m`` down (module
-    doc). The offsets enter as velocities (their change per tick), as the controller integrates the policy's output."""
+class TouchdownFeedback:
+    """A `LandingBatch` policy: ``base``'s output (``rows`` cats in all) plus the legs' offsets −k·(pitch, roll)
+    below ``on_m``, held from ``freeze_m`` down (module doc). The offsets enter as velocities (their change per
+    tick), as the controller integrates the policy's output."""
 
-    def __init__(self, *args, k: float, on_m: float, freeze_m: float, **kw):
-        super().__init__(*args, **kw)
+    def __init__(self, base, rows: int, *, k: float, on_m: float, freeze_m: float):
+        self.base = base
         self.k, self.on_m, self.freeze_m = float(k), float(on_m), float(freeze_m)
-        self.offset = np.zeros((len(self.heights), 12))
-        self.frozen = np.zeros(len(self.heights), dtype=bool)
+        self.offset = np.zeros((rows, 12))
+        self.frozen = np.zeros(rows, dtype=bool)
 
     def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        v = np.array(super().__call__(it, t, rows), dtype=float)
+        v = np.array(self.base(it, t, rows), dtype=float)
         h = it[:, 6] * DROP_HEIGHT_M
         roll, pitch = it[:, 4] * math.pi, it[:, 5] * math.pi / 2
         new = np.zeros((len(rows), 12))
@@ -65,10 +71,43 @@ def landed(drops, k: float, on_m: float, freeze_m: float, library=DEFAULT_LIBRAR
         lib = load_library(library)
         n_ticks = max(int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops)
         args = (lib, [d.height_m for d in drops], n_ticks, joint_speeds(sim.spec))
-        policy = LibraryBatch(*args) if k == 0 else TouchdownFeedback(*args, k=k, on_m=on_m, freeze_m=freeze_m)
+        policy = LibraryBatch(*args)
+        if k != 0:
+            policy = TouchdownFeedback(policy, len(drops), k=k, on_m=on_m, freeze_m=freeze_m)
         return sum(o.landed for o in sim.run(drops, LandingBatch(sim.spec, [policy]), policy="library"))
     finally:
         sim.close()
+
+
+def robustness(drops, k: float, on_m: float, freeze_m: float, *, generations: int, population: int,
+               offsets_deg=(1.0, 2.0), workers=None) -> dict:
+    """The closed loop inside the search: each drop's motion searched (`felis.learning.landing.optimum.optimise`,
+    no restart) with the feedback of gain ``k`` on in every rollout (k = 0: open loop, as the library's), then
+    each motion that lands its drop run, with the same feedback, from the attitudes ``offsets_deg`` away (roll ±d,
+    pitch ±d): how far a landing carries."""
+    from felis.learning.landing.optimum import evaluate, optimise
+    from felis.scenarios.drop import Drop
+
+    wrap = None if k == 0 else (lambda p, n: TouchdownFeedback(p, n, k=k, on_m=on_m, freeze_m=freeze_m))
+    sim = BatchLandingSim("cat", nthread=workers)
+    try:
+        found = optimise(drops, generations=generations, population=population, restarts=0, sim=sim, wrap=wrap)
+        ok = [r for r in found if r.landed]
+        near, xs = [], []
+        for r in ok:
+            d = r.drop
+            for off in offsets_deg:
+                for dr, dp in ((off, 0.0), (-off, 0.0), (0.0, off), (0.0, -off)):
+                    near.append(Drop(d.roll_deg + dr, d.pitch_deg + dp, d.yaw_deg, d.height_m))
+                    xs.append(r.x)
+        verdicts = evaluate(sim, near, np.array(xs), wrap=wrap) if near else []
+    finally:
+        sim.close()
+    per = len(offsets_deg) * 4
+    by_offset = {f"{off:g}": sum(v.landed for i, (_, v) in enumerate(verdicts) if (i % per) // 4 == j)
+                 for j, off in enumerate(offsets_deg)}
+    return {"k": k, "drops": len(drops), "landed": len(ok), "rollouts": int(sum(r.rollouts for r in found)),
+            "near_tried_per_offset": 4 * len(ok), "near_landed": by_offset}
 
 
 def main() -> None:
@@ -80,8 +119,28 @@ def main() -> None:
     ap.add_argument("--gains", type=float, nargs="+", default=[0.0, 0.1, -0.1, 0.3, 1.0])
     ap.add_argument("--on", type=float, default=0.6, help="waist height (m) below which the feedback acts")
     ap.add_argument("--freeze", type=float, default=0.2, help="waist height (m) from which the offsets are held")
+    ap.add_argument("--search", type=int, metavar="N", help="instead: search the first N drops of the first seed "
+                    "with each gain on, then try each landing motion from attitudes 1° and 2° away (`robustness`)")
+    ap.add_argument("--generations", type=int, default=30, help="with --search: CMA-ES generations (default 30)")
+    ap.add_argument("--population", type=int, default=12, help="with --search: CMA-ES population (default 12)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    if args.search:
+        drops = drops_from(f"random:{args.drops}", seed=args.seeds[0], height=args.height)[:args.search]
+        res = [robustness(drops, k, args.on, args.freeze, generations=args.generations, population=args.population)
+               for k in args.gains]
+        if args.json:
+            print(json.dumps({"height_m": args.height, "seed": args.seeds[0], "rows": res}, indent=2))
+            return
+        print(f"landing_touchdown --search: the first {args.search} drops of random:{args.drops} seed "
+              f"{args.seeds[0]} from {args.height:g} m, each searched ({args.generations} × {args.population}) "
+              "with the feedback on")
+        for r in res:
+            name = "open loop" if r["k"] == 0 else f"k = {r['k']:+g}"
+            near = ", ".join(f"{o}°: {n}/{r['near_tried_per_offset']}" for o, n in r["near_landed"].items())
+            print(f"  {name:10s} landed {r['landed']}/{r['drops']} ({r['rollouts']} rollouts); "
+                  f"from attitudes away: {near}")
+        return
     rows = []
     for k in args.gains:
         per = [landed(drops_from(f"random:{args.drops}", seed=s, height=args.height), k, args.on, args.freeze)

@@ -140,7 +140,7 @@ class DropOptimum:
 
 
 def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: float = 1.0,
-             outcomes: list | None = None, late_ticks: int = 0) -> list[tuple[float, object]]:
+             outcomes: list | None = None, late_ticks: int = 0, wrap=None) -> list[tuple[float, object]]:
     """Score motions ``xs`` (B, 55) on ``drops`` (B) in one batch of ``sim`` (`BatchLandingSim`), with the legs'
     touchdown compliance (`felis.controllers.landing.LandingController`); ``outcomes``: a list that gets each
     drop's `felis.learning.landing.evaluate.LandingOutcome` too.
@@ -148,7 +148,10 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
     ``late_ticks`` k > 0: each motion is also run started 1…k ticks late (its velocity table shifted, the joints
     held meanwhile), as a servo bus's latency and a wall clock's jitter delay it on hardware; its score and
     verdict are the worst of the k + 1 runs, so it lands only if it lands at every delay (the outcomes: the
-    on-time runs')."""
+    on-time runs').
+
+    ``wrap(policy, rows)``: a policy that runs around the open-loop one (``rows`` cats; e.g. a feedback,
+    ``bench/landing_touchdown.py``)."""
     from felis.controllers.landing import LandingBatch
     from felis.learning.landing.designs import joint_speeds
     from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
@@ -164,7 +167,8 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
         late = [np.concatenate([np.zeros((len(xs), s, 12)), tables[:, :T - s]], axis=1) for s in range(1, k + 1)]
         tables = np.concatenate([tables, *late])
     every = list(drops) * (k + 1)
-    ctl = LandingBatch(sim.spec, [OpenLoop(tables)], touchdown_stiffness=touchdown_stiffness)
+    policy = OpenLoop(tables) if wrap is None else wrap(OpenLoop(tables), len(tables))
+    ctl = LandingBatch(sim.spec, [policy], touchdown_stiffness=touchdown_stiffness)
     results = sim.batch.run(every, ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
     if outcomes is not None:
         from felis.learning.landing.evaluate import outcome_of
@@ -179,11 +183,11 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
 def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
              restarts: int = 0, seed: int = 0, workers: int | None = None,
              progress: Callable[[int, int], None] | None = None, sim=None,
-             index: Sequence[int] | None = None, late_ticks: int = 0) -> list[DropOptimum]:
+             index: Sequence[int] | None = None, late_ticks: int = 0, wrap=None) -> list[DropOptimum]:
     """The per-drop optimum of every drop (module doc); ``progress(generation, drops still searching)``.
     ``index``: each drop's index in the whole list (default 0, 1, …): its CMA-ES is seeded by it, so a drop's
     result does not depend on how the list is cut. ``late_ticks``: a motion must also land started that many
-    ticks late (`evaluate`); the rollouts counted include those."""
+    ticks late (`evaluate`); the rollouts counted include those. ``wrap``: as `evaluate`'s, in every rollout."""
     import cma
 
     from felis.learning.landing.evaluate import BatchLandingSim
@@ -203,7 +207,7 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
         best_v: list = [None] * n
         used = np.zeros(n, dtype=int)
         # generation 0: every seed on every drop
-        res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)), late_ticks=late_ticks)
+        res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)), late_ticks=late_ticks, wrap=wrap)
         order = []
         for i in range(n):
             sc = np.array([res[i * len(S) + j][0] for j in range(len(S))])
@@ -225,7 +229,8 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
                     break
                 asks = {i: np.array(es[i].ask()) for i in active}
                 batch_drops = [drops[i] for i in active for _ in range(population)]
-                res = evaluate(sim, batch_drops, np.concatenate([asks[i] for i in active]), late_ticks=late_ticks)
+                res = evaluate(sim, batch_drops, np.concatenate([asks[i] for i in active]), late_ticks=late_ticks,
+                               wrap=wrap)
                 for a, i in enumerate(active):
                     part = res[a * population:(a + 1) * population]
                     sc = np.array([r[0] for r in part])

@@ -21,7 +21,8 @@ def test_the_offsets_follow_the_imu_below_on_and_are_held_from_freeze():
     bench = load_bench("landing_touchdown")
     lib = load_library()
     args = (lib, [3.0], 120, 10.0)
-    fb, plain = bench.TouchdownFeedback(*args, k=0.5, on_m=0.6, freeze_m=0.2), LibraryBatch(*args)
+    fb = bench.TouchdownFeedback(LibraryBatch(*args), 1, k=0.5, on_m=0.6, freeze_m=0.2)
+    plain = LibraryBatch(*args)
     rows = np.array([0])
     steps = [(0.0, 20.0, -10.0, 2.9), (0.01, 20.0, -10.0, 0.5), (0.02, 80.0, 0.0, 0.4), (0.03, 30.0, -10.0, 0.3),
              (0.04, 10.0, 5.0, 0.15), (0.05, -10.0, -5.0, 0.1)]
@@ -47,3 +48,26 @@ def test_gain_zero_is_the_library():
     drops = drops_from("random:4", seed=2, height=1.0)
     assert bench.landed(drops, 0.0, 0.6, 0.2) == sum(o.landed for o in run_drops(drops, "library"))
     assert bench.landed(drops, 1e-12, 0.6, 0.2) == bench.landed(drops, 0.0, 0.6, 0.2)
+
+
+def test_the_feedback_inside_the_search():
+    """`robustness`: the optimum's rollouts run through the wrap (k = 0: none, the open loop's own results), and
+    each landing motion is tried from 8 attitudes near its drop."""
+    bench = load_bench("landing_touchdown")
+    from felis.learning.landing.optimum import optimise
+    from felis.scenarios.drop import Drop
+
+    drops = [Drop(20.0, 10.0, 0.0, 1.0), Drop(60.0, 0.0, 0.0, 1.0)]  # within reach of the seeds from 1 m
+    plain = optimise(drops, generations=0, population=2)
+    r0 = bench.robustness(drops, 0.0, 0.6, 0.2, generations=0, population=2)
+    assert r0["landed"] == sum(o.landed for o in plain) > 0
+    assert r0["near_tried_per_offset"] == 4 * r0["landed"] and set(r0["near_landed"]) == {"1", "2"}
+    assert all(0 <= n <= 4 * r0["landed"] for n in r0["near_landed"].values())
+    seen = []
+
+    def wrap(policy, rows):
+        seen.append(rows)
+        return policy
+
+    same = optimise(drops, generations=0, population=2, wrap=wrap)
+    assert seen and [o.score for o in same] == [o.score for o in plain]  # an identity wrap changes nothing
