@@ -10,7 +10,7 @@ BatchLandingSim`) against the library alone.
 
     python bench/landing_touchdown.py [--height 3] [--seeds 2 3] [--gains 0 0.1 -0.1 0.3 1] [--on 0.6]
         [--freeze 0.2] [--json]
-    python bench/landing_touchdown.py --search 16 --seeds 4 --gains 0 0.3 1   # the feedback inside the search
+    python bench/landing_touchdown.py --search 40 --max-tilt 90 --seeds 4 --gains 0 0.3 1   # … inside the search
 
 ``--search N``: the closed loop where it belongs, inside the search: each of N drops gets its own motion searched
 with the feedback on (`robustness`), and each motion that lands is tried from attitudes 1° and 2° away (roll and
@@ -121,20 +121,25 @@ def main() -> None:
     ap.add_argument("--freeze", type=float, default=0.2, help="waist height (m) from which the offsets are held")
     ap.add_argument("--search", type=int, metavar="N", help="instead: search the first N drops of the first seed "
                     "with each gain on, then try each landing motion from attitudes 1° and 2° away (`robustness`)")
+    ap.add_argument("--max-tilt", type=float, default=180.0, help="with --search: only drops whose start tilt is at "
+                    "most this (deg; default 180: all)")
     ap.add_argument("--generations", type=int, default=30, help="with --search: CMA-ES generations (default 30)")
     ap.add_argument("--population", type=int, default=12, help="with --search: CMA-ES population (default 12)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.search:
-        drops = drops_from(f"random:{args.drops}", seed=args.seeds[0], height=args.height)[:args.search]
+        from felis.rotations import euler_quat, tilt_deg
+
+        drops = [d for d in drops_from(f"random:{args.drops}", seed=args.seeds[0], height=args.height)
+                 if float(tilt_deg(euler_quat(d.roll_deg, d.pitch_deg, d.yaw_deg))) <= args.max_tilt][:args.search]
         res = [robustness(drops, k, args.on, args.freeze, generations=args.generations, population=args.population)
                for k in args.gains]
         if args.json:
             print(json.dumps({"height_m": args.height, "seed": args.seeds[0], "rows": res}, indent=2))
             return
-        print(f"landing_touchdown --search: the first {args.search} drops of random:{args.drops} seed "
-              f"{args.seeds[0]} from {args.height:g} m, each searched ({args.generations} × {args.population}) "
-              "with the feedback on")
+        print(f"landing_touchdown --search: the first {len(drops)} drops of random:{args.drops} seed "
+              f"{args.seeds[0]} tilted at most {args.max_tilt:g}° from {args.height:g} m, each searched "
+              f"({args.generations} × {args.population}) with the feedback on")
         for r in res:
             name = "open loop" if r["k"] == 0 else f"k = {r['k']:+g}"
             near = ", ".join(f"{o}°: {n}/{r['near_tried_per_offset']}" for o, n in r["near_landed"].items())
