@@ -13,8 +13,9 @@ BatchLandingSim`) against the library alone.
     python bench/landing_touchdown.py --search 40 --max-tilt 90 --seeds 4 --gains 0 0.3 1   # … inside the search
 
 ``--search N``: the closed loop where it belongs, inside the search: each of N drops gets its own motion searched
-with the feedback on (`robustness`), and each motion that lands is tried from attitudes 1° and 2° away (roll and
-pitch, both ways): does a closed-loop touchdown make a landing hold over a wider patch of attitudes?
+with the feedback on (`robustness`), and each motion that lands is tried from attitudes 1° and 2° away (roll,
+pitch and the diagonals, each way): does a closed-loop touchdown make a landing hold over a wider patch of
+attitudes? ``--patch D``: the search must land the attitudes D away in roll and pitch too (the worst of five).
 """
 
 from __future__ import annotations
@@ -79,35 +80,43 @@ def landed(drops, k: float, on_m: float, freeze_m: float, library=DEFAULT_LIBRAR
         sim.close()
 
 
+DIRECTIONS = [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)] + [(a * math.sqrt(0.5), b * math.sqrt(0.5))
+                                                                  for a in (1, -1) for b in (1, -1)]
+
+
 def robustness(drops, k: float, on_m: float, freeze_m: float, *, generations: int, population: int,
-               offsets_deg=(1.0, 2.0), workers=None) -> dict:
+               offsets_deg=(1.0, 2.0), patch_deg: float = 0.0, workers=None) -> dict:
     """The closed loop inside the search: each drop's motion searched (`felis.learning.landing.optimum.optimise`,
-    no restart) with the feedback of gain ``k`` on in every rollout (k = 0: open loop, as the library's), then
-    each motion that lands its drop run, with the same feedback, from the attitudes ``offsets_deg`` away (roll ±d,
-    pitch ±d): how far a landing carries."""
+    no restart) with the feedback of gain ``k`` on in every rollout (k = 0: open loop, as the library's), and with
+    ``patch_deg`` > 0 required to land the four attitudes that far away in roll and pitch too (its worst); then
+    each motion that lands its drop run, with the same feedback, from the attitudes ``offsets_deg`` away in eight
+    directions (roll, pitch and the diagonals, each way): how far a landing carries."""
     from felis.learning.landing.optimum import evaluate, optimise
     from felis.scenarios.drop import Drop
 
     wrap = None if k == 0 else (lambda p, n: TouchdownFeedback(p, n, k=k, on_m=on_m, freeze_m=freeze_m))
     sim = BatchLandingSim("cat", nthread=workers)
     try:
-        found = optimise(drops, generations=generations, population=population, restarts=0, sim=sim, wrap=wrap)
+        found = optimise(drops, generations=generations, population=population, restarts=0, sim=sim, wrap=wrap,
+                         patch_deg=patch_deg)
         ok = [r for r in found if r.landed]
         near, xs = [], []
         for r in ok:
             d = r.drop
             for off in offsets_deg:
-                for dr, dp in ((off, 0.0), (-off, 0.0), (0.0, off), (0.0, -off)):
-                    near.append(Drop(d.roll_deg + dr, d.pitch_deg + dp, d.yaw_deg, d.height_m))
+                for dr, dp in DIRECTIONS:
+                    near.append(Drop(d.roll_deg + off * dr, d.pitch_deg + off * dp, d.yaw_deg, d.height_m))
                     xs.append(r.x)
         verdicts = evaluate(sim, near, np.array(xs), wrap=wrap) if near else []
     finally:
         sim.close()
-    per = len(offsets_deg) * 4
-    by_offset = {f"{off:g}": sum(v.landed for i, (_, v) in enumerate(verdicts) if (i % per) // 4 == j)
+    m = len(DIRECTIONS)
+    per = len(offsets_deg) * m
+    by_offset = {f"{off:g}": sum(v.landed for i, (_, v) in enumerate(verdicts) if (i % per) // m == j)
                  for j, off in enumerate(offsets_deg)}
-    return {"k": k, "drops": len(drops), "landed": len(ok), "rollouts": int(sum(r.rollouts for r in found)),
-            "near_tried_per_offset": 4 * len(ok), "near_landed": by_offset}
+    return {"k": k, "patch_deg": patch_deg, "drops": len(drops), "landed": len(ok),
+            "rollouts": int(sum(r.rollouts for r in found)), "near_tried_per_offset": m * len(ok),
+            "near_landed": by_offset}
 
 
 def main() -> None:
@@ -123,6 +132,8 @@ def main() -> None:
                     "with each gain on, then try each landing motion from attitudes 1° and 2° away (`robustness`)")
     ap.add_argument("--max-tilt", type=float, default=180.0, help="with --search: only drops whose start tilt is at "
                     "most this (deg; default 180: all)")
+    ap.add_argument("--patch", type=float, nargs="+", default=[0.0], help="with --search: each search must land "
+                    "the attitudes this far away in roll and pitch too (deg; several: one search each; default 0)")
     ap.add_argument("--generations", type=int, default=30, help="with --search: CMA-ES generations (default 30)")
     ap.add_argument("--population", type=int, default=12, help="with --search: CMA-ES population (default 12)")
     ap.add_argument("--json", action="store_true")
@@ -132,8 +143,8 @@ def main() -> None:
 
         drops = [d for d in drops_from(f"random:{args.drops}", seed=args.seeds[0], height=args.height)
                  if float(tilt_deg(euler_quat(d.roll_deg, d.pitch_deg, d.yaw_deg))) <= args.max_tilt][:args.search]
-        res = [robustness(drops, k, args.on, args.freeze, generations=args.generations, population=args.population)
-               for k in args.gains]
+        res = [robustness(drops, k, args.on, args.freeze, generations=args.generations, population=args.population,
+                          patch_deg=p) for p in args.patch for k in args.gains]
         if args.json:
             print(json.dumps({"height_m": args.height, "seed": args.seeds[0], "rows": res}, indent=2))
             return
@@ -141,9 +152,10 @@ def main() -> None:
               f"{args.seeds[0]} tilted at most {args.max_tilt:g}° from {args.height:g} m, each searched "
               f"({args.generations} × {args.population}) with the feedback on")
         for r in res:
-            name = "open loop" if r["k"] == 0 else f"k = {r['k']:+g}"
+            name = ("open loop" if r["k"] == 0 else f"k = {r['k']:+g}") + (
+                f", patch {r['patch_deg']:g}°" if r["patch_deg"] else "")
             near = ", ".join(f"{o}°: {n}/{r['near_tried_per_offset']}" for o, n in r["near_landed"].items())
-            print(f"  {name:10s} landed {r['landed']}/{r['drops']} ({r['rollouts']} rollouts); "
+            print(f"  {name:22s} landed {r['landed']}/{r['drops']} ({r['rollouts']} rollouts); "
                   f"from attitudes away: {near}")
         return
     rows = []

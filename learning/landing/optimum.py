@@ -139,8 +139,15 @@ class DropOptimum:
                 "motion_x": [round(v, 4) for v in self.x]}
 
 
+def patch(d: Drop, deg: float) -> list[Drop]:
+    """The four drops ``deg`` away from ``d`` in roll and in pitch, each way."""
+    return [Drop(d.roll_deg + r, d.pitch_deg + p, d.yaw_deg, d.height_m)
+            for r, p in ((deg, 0.0), (-deg, 0.0), (0.0, deg), (0.0, -deg))]
+
+
 def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: float = 1.0,
-             outcomes: list | None = None, late_ticks: int = 0, wrap=None) -> list[tuple[float, object]]:
+             outcomes: list | None = None, late_ticks: int = 0, wrap=None,
+             patch_deg: float = 0.0) -> list[tuple[float, object]]:
     """Score motions ``xs`` (B, 55) on ``drops`` (B) in one batch of ``sim`` (`BatchLandingSim`), with the legs'
     touchdown compliance (`felis.controllers.landing.LandingController`); ``outcomes``: a list that gets each
     drop's `felis.learning.landing.evaluate.LandingOutcome` too.
@@ -151,13 +158,21 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
     on-time runs').
 
     ``wrap(policy, rows)``: a policy that runs around the open-loop one (``rows`` cats; e.g. a feedback,
-    ``bench/landing_touchdown.py``)."""
+    ``bench/landing_touchdown.py``). ``patch_deg`` d > 0: each motion is also run from the four attitudes d away
+    (`patch`), and its score and verdict are the worst of the five (with ``late_ticks``, of every combination)."""
     from felis.controllers.landing import LandingBatch
     from felis.learning.landing.designs import joint_speeds
     from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
 
     if late_ticks < 0:
         raise ParameterError(f"optimum: late ticks must be ≥ 0, got {late_ticks}")
+    if not patch_deg >= 0:
+        raise ParameterError(f"optimum: a patch must be ≥ 0 degrees, got {patch_deg}")
+    n = len(drops)
+    if patch_deg > 0:  # blocks of n: the drops, then each of the four offsets
+        near = [patch(d, patch_deg) for d in drops]
+        drops = list(drops) + [near[i][j] for j in range(4) for i in range(n)]
+        xs = np.concatenate([xs] * 5)
     n_ticks = [int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops]
     T = max(n_ticks)
     speed = joint_speeds(sim.spec)
@@ -174,20 +189,22 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
         from felis.learning.landing.evaluate import outcome_of
 
         outcomes += [outcome_of(d, "optimum", r, sim.standing_waist_m)
-                     for d, r in zip(drops, results[:len(drops)], strict=True)]
+                     for d, r in zip(drops[:n], results[:n], strict=True)]
     scored = [score(r, sim.standing_waist_m) for r in results]
-    n = len(drops)
-    return [min((scored[i + s * n] for s in range(k + 1)), key=lambda sv: sv[0]) for i in range(n)]
+    blocks = len(scored) // n
+    return [min((scored[i + s * n] for s in range(blocks)), key=lambda sv: sv[0]) for i in range(n)]
 
 
 def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
              restarts: int = 0, seed: int = 0, workers: int | None = None,
              progress: Callable[[int, int], None] | None = None, sim=None,
-             index: Sequence[int] | None = None, late_ticks: int = 0, wrap=None) -> list[DropOptimum]:
+             index: Sequence[int] | None = None, late_ticks: int = 0, wrap=None,
+             patch_deg: float = 0.0) -> list[DropOptimum]:
     """The per-drop optimum of every drop (module doc); ``progress(generation, drops still searching)``.
     ``index``: each drop's index in the whole list (default 0, 1, …): its CMA-ES is seeded by it, so a drop's
     result does not depend on how the list is cut. ``late_ticks``: a motion must also land started that many
-    ticks late (`evaluate`); the rollouts counted include those. ``wrap``: as `evaluate`'s, in every rollout."""
+    ticks late (`evaluate`); the rollouts counted include those. ``wrap``, ``patch_deg``: as `evaluate`'s, in every
+    rollout (a drop counts as landed only if its motion lands the whole patch)."""
     import cma
 
     from felis.learning.landing.evaluate import BatchLandingSim
@@ -207,14 +224,15 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
         best_v: list = [None] * n
         used = np.zeros(n, dtype=int)
         # generation 0: every seed on every drop
-        res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)), late_ticks=late_ticks, wrap=wrap)
+        res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)), late_ticks=late_ticks, wrap=wrap,
+                       patch_deg=patch_deg)
         order = []
         for i in range(n):
             sc = np.array([res[i * len(S) + j][0] for j in range(len(S))])
             order.append(np.argsort(-sc, kind="stable"))
             j = int(order[i][0])
             best_s[i], best_x[i], best_v[i] = sc[j], S[j], res[i * len(S) + j][1]
-            used[i] += len(S) * (late_ticks + 1)
+            used[i] += len(S) * (late_ticks + 1) * (5 if patch_deg > 0 else 1)
         for start in range(restarts + 1):
             active = [i for i in range(n) if not best_v[i].landed]
             es = {i: cma.CMAEvolutionStrategy(S[int(order[i][min(start, len(S) - 1)])], SIGMA0,
@@ -230,12 +248,12 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
                 asks = {i: np.array(es[i].ask()) for i in active}
                 batch_drops = [drops[i] for i in active for _ in range(population)]
                 res = evaluate(sim, batch_drops, np.concatenate([asks[i] for i in active]), late_ticks=late_ticks,
-                               wrap=wrap)
+                               wrap=wrap, patch_deg=patch_deg)
                 for a, i in enumerate(active):
                     part = res[a * population:(a + 1) * population]
                     sc = np.array([r[0] for r in part])
                     es[i].tell(list(asks[i]), list(-sc))
-                    used[i] += population * (late_ticks + 1)
+                    used[i] += population * (late_ticks + 1) * (5 if patch_deg > 0 else 1)
                     j = int(np.argmax(sc))
                     if sc[j] > best_s[i]:
                         best_s[i], best_x[i], best_v[i] = sc[j], asks[i][j], part[j][1]

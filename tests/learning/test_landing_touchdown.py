@@ -61,8 +61,8 @@ def test_the_feedback_inside_the_search():
     plain = optimise(drops, generations=0, population=2)
     r0 = bench.robustness(drops, 0.0, 0.6, 0.2, generations=0, population=2)
     assert r0["landed"] == sum(o.landed for o in plain) > 0
-    assert r0["near_tried_per_offset"] == 4 * r0["landed"] and set(r0["near_landed"]) == {"1", "2"}
-    assert all(0 <= n <= 4 * r0["landed"] for n in r0["near_landed"].values())
+    assert r0["near_tried_per_offset"] == 8 * r0["landed"] and set(r0["near_landed"]) == {"1", "2"}
+    assert all(0 <= n <= 8 * r0["landed"] for n in r0["near_landed"].values())
     seen = []
 
     def wrap(policy, rows):
@@ -71,3 +71,19 @@ def test_the_feedback_inside_the_search():
 
     same = optimise(drops, generations=0, population=2, wrap=wrap)
     assert seen and [o.score for o in same] == [o.score for o in plain]  # an identity wrap changes nothing
+
+
+def test_a_patch_scores_the_worst_of_five_attitudes():
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.optimum import evaluate, patch, seeds
+    from felis.scenarios.drop import Drop
+
+    d, x = Drop(40.0, 20.0, 0.0, 1.0), seeds()[:3]
+    sim = BatchLandingSim()
+    try:
+        got = evaluate(sim, [d] * 3, x, patch_deg=2.0)
+        each = evaluate(sim, [d, *patch(d, 2.0)] * 3, np.repeat(x, 5, axis=0))
+    finally:
+        sim.close()
+    for i in range(3):
+        assert got[i][0] == min(s for s, _ in each[5 * i:5 * i + 5])
