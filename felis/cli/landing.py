@@ -88,6 +88,9 @@ def register_train(train_sub) -> None:
     b.add_argument("--fill-rounds", type=int, default=FILL_ROUNDS, metavar="N",
                    help="rounds of the fill: the first for the probes no motion lands, the next for those where the "
                    f"choice, their own vote left out, picks one that fails (default {FILL_ROUNDS})")
+    b.add_argument("--patch", type=float, default=0.0, metavar="DEG",
+                   help="each entry's search must also land the four attitudes DEG away in roll and pitch (its score "
+                   "the worst of five; 5x the rollouts; default 0)")
     b.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
     b.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the library)")
     b.add_argument("--resume", action="store_true", help="continue from the checkpoints in --workdir")
@@ -133,6 +136,10 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--late-ticks", type=int, default=0, metavar="K",
                    help="optimum: a motion counts only if it also lands started 1..K ticks late (a servo bus's "
                    "latency and jitter; default 0)")
+    e.add_argument("--patch", type=float, default=0.0, metavar="DEG",
+                   help="optimum: a motion counts only if it also lands the four attitudes DEG away in roll and pitch "
+                   "(its score the worst of five: a landing that holds when the release attitude is a little off; "
+                   "5x the rollouts; default 0)")
     e.add_argument("--motions", type=Path, metavar="DIR",
                    help="optimum: write each drop's best motion to DIR/drop-<i>.json, a policy `felis run landing "
                    "--policy` runs (open loop, for that drop)")
@@ -166,6 +173,8 @@ def cmd_train_landing(args) -> int:
     if out.suffix.lower() != ".npz":
         raise ParameterError(f"{out}: a landing policy file must end in .npz")
     check_target(out, "landing policy", ParameterError)
+    if not (math.isfinite(args.patch) and args.patch >= 0):
+        raise ParameterError(f"--patch must be ≥ 0 degrees, got {args.patch}")
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not (Path(workdir) / "checkpoint.npz").is_file():
         raise ParameterError(f"--resume: no checkpoint in {workdir}")
@@ -238,6 +247,8 @@ def cmd_train_library(args) -> int:
         return _add_probes_to_library(args, out, command)
     if args.base is not None:
         raise ParameterError("--base names the library that --add or --add-probes extends; give one of them too")
+    if not (math.isfinite(args.patch) and args.patch >= 0):
+        raise ParameterError(f"--patch must be ≥ 0 degrees, got {args.patch}")
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
@@ -247,7 +258,7 @@ def cmd_train_library(args) -> int:
                             generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address, workdir=workdir,
                             resume=args.resume, command=command, fill_generations=args.fill_generations,
-                            fill_rounds=args.fill_rounds, progress=progress)
+                            fill_rounds=args.fill_rounds, patch_deg=args.patch, progress=progress)
     _write_library(out, lib)
     for s in lib.shelves:
         print(f"{s.height_m:g} m: {int(s.landed.sum())} of {len(s.landed)} entries (the optimum, its robust "
@@ -305,6 +316,8 @@ def _add_probes_to_library(args, out: Path, command: str) -> int:
 
     base = args.base or DEFAULT_LIBRARY
     lib = load_library(base)
+    if not (math.isfinite(args.patch) and args.patch >= 0):
+        raise ParameterError(f"--patch must be ≥ 0 degrees, got {args.patch}")
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
@@ -364,6 +377,8 @@ def _eval_optimum(args, drops) -> int:
         raise ParameterError("--resume needs --checkpoint DIR (where the finished drops were written)")
     if args.late_ticks < 0:
         raise ParameterError(f"--late-ticks must be ≥ 0 (ticks a motion may start late), got {args.late_ticks}")
+    if not (math.isfinite(args.patch) and args.patch >= 0):
+        raise ParameterError(f"--patch must be ≥ 0 degrees, got {args.patch}")
     output.check_json_out(args.out)
     if args.motions is not None and args.motions.exists() and not args.motions.is_dir():
         raise ParameterError(f"--motions {args.motions}: not a directory")
@@ -373,7 +388,7 @@ def _eval_optimum(args, drops) -> int:
         best = optimise_all(drops, generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address,
                             workdir=str(args.checkpoint) if args.checkpoint else None, resume=args.resume,
-                            progress=step, design=args.design, late_ticks=args.late_ticks)
+                            progress=step, design=args.design, late_ticks=args.late_ticks, patch_deg=args.patch)
     if args.motions is not None:
         _write_motions(args.motions, best)
     landed = [o.landed for o in best]
@@ -386,7 +401,7 @@ def _eval_optimum(args, drops) -> int:
            "reasons": dict(sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))),
            "standing_waist_m": None, "by_tilt": by_tilt(drops, landed),
            "search": {"generations": args.generations, "population": args.population, "restarts": args.restarts,
-                      "late_ticks": args.late_ticks,
+                      "late_ticks": args.late_ticks, "patch_deg": args.patch,
                       "rollouts": int(sum(o.rollouts for o in best))},
            "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design,
            "drops": [o.as_dict() for o in best]}

@@ -175,12 +175,14 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
                   restarts: int = 1, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
                   workdir: str | Path | None = None, resume: bool = False, command: str = "",
                   robust_generations: int = ROBUST_GENERATIONS, fill_generations: int = FILL_GENERATIONS,
-                  fill_rounds: int = FILL_ROUNDS,
+                  fill_rounds: int = FILL_ROUNDS, patch_deg: float = 0.0,
                   progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """The library (module doc); ``progress(stage, done, total)`` with stage ``"<h> m optimum"``, ``"<h> m
     robust"``, ``"<h> m probes"`` or ``"<h> m fill <round>"``. ``robust_generations`` 0: no robust stage;
     ``fill_generations`` > 0: ``fill_rounds`` rounds of `fill` on `fill_targets`, each followed by the new
-    entries' tries on the probes."""
+    entries' tries on the probes. ``patch_deg`` > 0: each entry's search must land the four attitudes that far
+    away too (`felis.learning.landing.optimum.evaluate`; an entry then counts as landed only if it lands all five),
+    for motions whose landing holds when the release attitude is a little off (docs/landing.md)."""
     from felis.learning.landing.evaluate import BatchLandingSim
     from felis.learning.landing.optimum import optimise_all
 
@@ -204,7 +206,7 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
 
         best = optimise_all(drops, generations=generations, population=population, restarts=restarts, seed=seed,
                             workers=workers, ray_address=ray_address, workdir=None if where is None else str(where),
-                            resume=resume, progress=step)
+                            resume=resume, progress=step, patch_deg=patch_deg)
         x = np.array([o.x for o in best])
         landed = np.array([o.landed for o in best])
         entry_up, entry_drops = ups, [o.drop.as_dict() for o in best]
@@ -267,6 +269,7 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
     meta = {"made_by": command,
             "grid": {"sphere_points": grid, "probe_points": probes, "max_tilt_deg": max_tilt_deg},
             "search": {"generations": generations, "population": population, "restarts": restarts, "seed": seed,
+                       **({"patch_deg": float(patch_deg)} if patch_deg else {}),
                        "robust": {"generations": robust_generations, "population": ROBUST_POPULATION,
                                   "offset_deg": ROBUST_OFFSET_DEG},
                        **({"fill": {"generations": fill_generations, "rounds": fill_rounds,

@@ -295,7 +295,7 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
                  restarts: int = 0, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
                  chunk: int | None = None, workdir: str | None = None, resume: bool = False,
                  progress: Callable[[int], None] | None = None, design: str = "cat",
-                 late_ticks: int = 0) -> list[DropOptimum]:
+                 late_ticks: int = 0, patch_deg: float = 0.0) -> list[DropOptimum]:
     """`optimise` for a long list: cut into chunks of ``chunk`` drops (default: shared evenly among the
     workers, at most 25 a chunk), one chunk per evaluator worker at a time
     (`felis.learning.common.evaluator`: a process pool of ``workers``, or Ray at ``ray_address``; one worker:
@@ -303,7 +303,7 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
     (JSON lines after a header with the settings and the drops); ``resume`` skips the drops already there.
     Results equal one `optimise` over the whole list (each drop is searched alone); ``progress(n)`` after
     each round of chunks, n drops done in it. ``design``: a cat of `felis.learning.landing.designs.DESIGNS`;
-    ``late_ticks``: as in `optimise`."""
+    ``late_ticks``, ``patch_deg``: as in `optimise`."""
     import json
     from pathlib import Path
 
@@ -316,6 +316,10 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
         settings["design"] = design
     if late_ticks:
         settings["late_ticks"] = int(late_ticks)
+    if not patch_deg >= 0:
+        raise ParameterError(f"optimum: a patch must be ≥ 0 degrees, got {patch_deg}")
+    if patch_deg:
+        settings["patch_deg"] = float(patch_deg)
     header = {"settings": settings, "drops": [d.as_dict() for d in drops]}
     done: dict[int, DropOptimum] = {}
     ckpt = Path(workdir) / CHECKPOINT if workdir else None

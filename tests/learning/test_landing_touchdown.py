@@ -87,3 +87,29 @@ def test_a_patch_scores_the_worst_of_five_attitudes():
         sim.close()
     for i in range(3):
         assert got[i][0] == min(s for s, _ in each[5 * i:5 * i + 5])
+
+
+def test_patch_through_the_long_run_and_the_cli(tmp_path):
+    """`optimise_all(patch_deg=)` equals `optimise` (chunked, checkpointed: the header records the patch); the
+    commands refuse a negative patch in one line."""
+    import json
+    import subprocess
+    import sys
+
+    from felis.learning.landing.optimum import optimise, optimise_all, seeds
+    from felis.scenarios.drop import Drop
+
+    drops = [Drop(30.0, 0.0, 0.0, 1.0), Drop(0.0, 50.0, 0.0, 1.0)]
+    one = optimise(drops, generations=1, population=4, patch_deg=2.0)
+    many = optimise_all(drops, generations=1, population=4, workers=1, chunk=1, workdir=str(tmp_path / "w"),
+                        patch_deg=2.0)
+    assert [o.as_dict() for o in one] == [o.as_dict() for o in many]
+    for o in one:  # every rollout five times: the seeds, then one generation of 4 unless a seed landed the patch
+        assert o.rollouts in (5 * len(seeds()), 5 * (len(seeds()) + 4))
+    head = json.loads((tmp_path / "w" / "optimum.jsonl").read_text().splitlines()[0])
+    assert head["settings"]["patch_deg"] == 2.0
+    for argv in (("eval", "landing", "--policy", "optimum", "--drops", "random:1", "--patch", "-1"),
+                 ("train", "landing-library", "--patch", "nan", "--out", str(tmp_path / "l.json"))):
+        r = subprocess.run([sys.executable, "-m", "felis", *argv], capture_output=True, text=True, timeout=120)
+        assert r.returncode != 0 and "--patch must be ≥ 0 degrees" in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr
