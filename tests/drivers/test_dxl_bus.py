@@ -310,15 +310,22 @@ def test_closed_port_ends_the_run_without_a_crash(cat_bus):
 
 
 def test_one_percent_drops_only_make_stale_ticks(cat_bus):
+    """A tick's state is one FAST_SYNC_READ reply: a dropped one is retried, and the tick is lost (CommError, which
+    the loop logs as ``read_failed`` and rides out) only when the retry's reply is dropped too: 1 % of 1 %, so
+    about one run in 30 of these 300 ticks (CI saw one); more than two would not be drops."""
     cat_bus.faults.drop = 0.01
     with _robot(cat_bus) as robot:
         robot.arm()
-        stale = 0
+        stale = lost = 0
         for _ in range(300):
-            s = robot.read()
+            try:
+                s = robot.read()
+            except CommError:
+                lost += 1
+                continue
             stale += bool(s.faults.stale.any())
             robot.write(Command(q=s.q))
-        assert stale < 30
+        assert stale < 30 and lost <= 2, (stale, lost)
 
 
 # --------------------------------------------------------------------------------- fuzz: arbitrary replies
