@@ -173,8 +173,6 @@ def cmd_train_landing(args) -> int:
     if out.suffix.lower() != ".npz":
         raise ParameterError(f"{out}: a landing policy file must end in .npz")
     check_target(out, "landing policy", ParameterError)
-    if not (math.isfinite(args.patch) and args.patch >= 0):
-        raise ParameterError(f"--patch must be ≥ 0 degrees, got {args.patch}")
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not (Path(workdir) / "checkpoint.npz").is_file():
         raise ParameterError(f"--resume: no checkpoint in {workdir}")
@@ -316,8 +314,6 @@ def _add_probes_to_library(args, out: Path, command: str) -> int:
 
     base = args.base or DEFAULT_LIBRARY
     lib = load_library(base)
-    if not (math.isfinite(args.patch) and args.patch >= 0):
-        raise ParameterError(f"--patch must be ≥ 0 degrees, got {args.patch}")
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")

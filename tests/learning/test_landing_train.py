@@ -513,3 +513,12 @@ def test_one_net_mode_evolves_one_simple_behaviour_on_every_orientation(tmp_path
     assert isinstance(policy, SimpleBehaviour) and meta["one_net"] is True
     _, again = _train(tmp_path, samples, cfg, name="again")
     assert _numbers(again) == _numbers(res)
+
+
+def test_the_train_landing_command_refuses_a_resume_without_a_checkpoint_in_one_line(tmp_path):
+    """The command's own checks, past the output name (an option of another command once broke this path)."""
+    import subprocess
+
+    r = subprocess.run([sys.executable, "-m", "felis", "train", "landing", "--out", str(tmp_path / "p.npz"),
+                        "--resume"], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and r.stderr.strip() == f"error: --resume: no checkpoint in {tmp_path / 'p.ckpt'}"
