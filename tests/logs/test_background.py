@@ -121,10 +121,13 @@ def test_a_run_log_written_by_the_writer_thread_equals_one_written_on_the_loop(t
     if mode == "writer":
         monkeypatch.setattr(mcap, "FAST", math.inf)
     path = tmp_path / "run.mcap"
-    if mode == "fast":  # no sleep: hundreds of times faster than real time
-        seen = []
+    if mode == "fast":  # 0.5 ms a 10 ms tick: ~20 times faster than real time, past a few chunk boundaries
+        seen, flushes = [], []
         monkeypatch.setattr(mcap.McapLog, "_handoff", lambda self: seen.append(1))
-        assert _run(path, spec, how, sleep=0.0) == 0 and seen == [], "a run this fast should not start a writer"
+        flush = mcap.McapLog.flush
+        monkeypatch.setattr(mcap.McapLog, "flush", lambda self: (flushes.append(1), flush(self))[1])
+        assert _run(path, spec, how, sleep=0.0005) == 0 and seen == [], "a run this fast should not start a writer"
+        assert len(flushes) > 2, "no chunk was finished mid-run (2: the log's opening)"
     else:
         slices = _run(path, spec, how)
         assert (slices > 0) == (mode == "writer"), "the writer thread wrote nothing"
