@@ -161,4 +161,12 @@ def test_bad_trace_path_is_one_line_and_ctrl_c_flushes_the_trace(tmp_path, capsy
     assert vb.stats.packets >= 20
     lines = trace.read_text().splitlines()
     assert lines[-1].startswith("# end: ") and len(lines) > 20
-    packets(trace)  # every line whole and CRC-valid: nothing cut by the interrupt
+    # every line whole and CRC-valid: nothing cut by the interrupt, except that a reply the SIGINT stopped halfway
+    # through reading is traced as what arrived (one "RX SHORT" record, the last packet line; CI saw it once)
+    body = [x for x in lines if not x.startswith("#")]
+    if " RX SHORT " in body[-1]:
+        assert body[-1].split()[1:3] == ["RX", "SHORT"] and "(no complete packet)" in body[-1]
+        cut = trace.with_suffix(".whole")
+        cut.write_text("\n".join(x for x in lines if x != body[-1]) + "\n")
+        trace = cut
+    packets(trace)
