@@ -223,6 +223,7 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
         best_x = np.zeros((n, DIMS))
         best_v: list = [None] * n
         used = np.zeros(n, dtype=int)
+        runs = (late_ticks + 1) * (1 + 4 * (patch_deg > 0))  # rollouts per motion tried (`evaluate`)
         # generation 0: every seed on every drop
         res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)), late_ticks=late_ticks, wrap=wrap,
                        patch_deg=patch_deg)
@@ -232,7 +233,7 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
             order.append(np.argsort(-sc, kind="stable"))
             j = int(order[i][0])
             best_s[i], best_x[i], best_v[i] = sc[j], S[j], res[i * len(S) + j][1]
-            used[i] += len(S) * (late_ticks + 1) * (5 if patch_deg > 0 else 1)
+            used[i] += len(S) * runs
         for start in range(restarts + 1):
             active = [i for i in range(n) if not best_v[i].landed]
             es = {i: cma.CMAEvolutionStrategy(S[int(order[i][min(start, len(S) - 1)])], SIGMA0,
@@ -253,7 +254,7 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
                     part = res[a * population:(a + 1) * population]
                     sc = np.array([r[0] for r in part])
                     es[i].tell(list(asks[i]), list(-sc))
-                    used[i] += population * (late_ticks + 1) * (5 if patch_deg > 0 else 1)
+                    used[i] += population * runs
                     j = int(np.argmax(sc))
                     if sc[j] > best_s[i]:
                         best_s[i], best_x[i], best_v[i] = sc[j], asks[i][j], part[j][1]
