@@ -102,7 +102,8 @@ def register_train(train_sub) -> None:
                    "the library --base as entries of their drop height's shelf, tried on the probes near them")
     b.add_argument("--base", type=Path, metavar="LIBRARY.json",
                    help="the library --add or --add-probes extends (default: the shipped one, "
-                   f"learning/weights/{DEFAULT_LIBRARY.name})")
+                   f"learning/weights/{DEFAULT_LIBRARY.name}); with a search: the library whose --heights shelves "
+                   "the search rebuilds, its other shelves kept")
     b.add_argument("--add-probes", type=int, metavar="N",
                    help="no search: add the probes of an N-point Fibonacci sphere to the --heights shelves of --base, "
                    "each tried with the motions within --probe-radius of it (a denser grid for a narrower vote)")
@@ -243,8 +244,11 @@ def cmd_train_library(args) -> int:
         return _add_to_library(args, out, command)
     if args.add_probes is not None:
         return _add_probes_to_library(args, out, command)
-    if args.base is not None:
-        raise ParameterError("--base names the library that --add or --add-probes extends; give one of them too")
+    base = None
+    if args.base is not None:  # a rebuild of the --heights shelves; read first, so a bad file costs no search
+        from felis.learning.landing.library import load_library
+
+        base = load_library(args.base)
     if not (math.isfinite(args.patch) and args.patch >= 0):
         raise ParameterError(f"--patch must be ≥ 0 degrees, got {args.patch}")
     workdir = args.workdir or out.with_suffix(".ckpt")
@@ -257,8 +261,16 @@ def cmd_train_library(args) -> int:
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address, workdir=workdir,
                             resume=args.resume, command=command, fill_generations=args.fill_generations,
                             fill_rounds=args.fill_rounds, patch_deg=args.patch, progress=progress)
+    built = [s.height_m for s in lib.shelves]
+    if base is not None:
+        from felis.learning.landing.library_build import replace_shelves
+
+        lib = replace_shelves(base, lib, command)
     _write_library(out, lib)
     for s in lib.shelves:
+        if s.height_m not in built:
+            print(f"{s.height_m:g} m: kept from {args.base}")
+            continue
         print(f"{s.height_m:g} m: {int(s.landed.sum())} of {len(s.landed)} entries (the optimum, its robust "
               f"twins, the fills) land their own attitude; "
               f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion")

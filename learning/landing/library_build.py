@@ -9,7 +9,8 @@ tried on the probes, a denser Fibonacci grid (``probes`` points on the sphere, k
 lands, searched from the nearest candidate (`fill`, `fill_targets`), then its tries on the probes; further rounds
 (``fill_rounds``) do the same for the probes where the choice, their own vote left out, picks a motion that fails.
 Checkpoints per height in ``WORKDIR/<h>m/``: ``optimum.jsonl`` (per drop), ``robust.npz``, ``probes.npy``,
-``fill.npz`` (``fill2.npz``…); ``resume`` goes on from them. Deterministic for a seed.
+``fill.npz`` (``fill2.npz``…); ``resume`` goes on from them. Deterministic for a seed. `replace_shelves` puts
+the shelves built into another library (``--base``: one shelf rebuilt, the others kept).
 """
 
 from __future__ import annotations
@@ -376,6 +377,27 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     finally:
         sim.close()
     return _extended(lib, shelves, "probes_added", added, command)
+
+
+def replace_shelves(base: MotionLibrary, built: MotionLibrary, command: str = "") -> MotionLibrary:
+    """``base`` with ``built``'s shelves in place of those of the same heights (a height ``base`` lacks is added):
+    one shelf rebuilt, say with another search, the others kept. ``base``'s vote (radius, σ) is kept; the
+    records of what was added to the replaced shelves (``added``, ``probes_added``) go with them, and the meta
+    records the rebuild (``rebuilt``: the heights, ``built``'s grid and search) and the command (``extended_by``)."""
+    new = {s.height_m for s in built.shelves}
+
+    def replaced(h: float) -> bool:
+        return any(math.isclose(float(h), n, rel_tol=1e-6) for n in new)
+
+    shelves = {s.height_m: s for s in base.shelves if not replaced(s.height_m)}
+    shelves.update({s.height_m: s for s in built.shelves})
+    meta = dict(base.meta)
+    for key in ("added", "probes_added"):
+        if key in meta:
+            meta[key] = [a for a in meta[key] if not replaced(a["height_m"])]
+    rebuilt = [{"heights": sorted(new), **{k: built.meta[k] for k in ("grid", "search") if k in built.meta}}]
+    return _extended(MotionLibrary(list(shelves.values()), base.radius_deg, base.sigma_deg, meta=meta), shelves,
+                     "rebuilt", rebuilt, command)
 
 
 def _extended(lib: MotionLibrary, shelves: dict, key: str, added: list, command: str) -> MotionLibrary:

@@ -267,8 +267,43 @@ def test_add_refuses_a_motion_for_another_height_or_without_its_drop_in_one_line
         r = _felis("train", "landing-library", "--add", str(path), "--out", str(tmp_path / "o.json"))
         assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "o.json").exists()
-    r = _felis("train", "landing-library", "--base", str(DEFAULT_LIBRARY), "--out", str(tmp_path / "o.json"))
-    assert r.returncode != 0 and "give one of them too" in r.stderr
+
+
+def test_a_search_with_base_rebuilds_its_heights_shelves_and_keeps_the_others(tmp_path):
+    """`felis train landing-library --base LIB --heights 3 …`: the 3 m shelf is the new search's, the 1 m shelf
+    and the vote are LIB's; the records of what was added to the old 3 m shelf go with it, the rebuild is
+    recorded; eval runs the result. A bad --base is one line before any search."""
+    from felis.learning.landing.library_build import fibonacci_ups
+
+    out = tmp_path / "re.json"
+    r = _felis("train", "landing-library", "--base", str(DEFAULT_LIBRARY), "--heights", "3", "--grid", "12",
+               "--probes", "20", "--max-tilt", "60", "--generations", "1", "--population", "2", "--restarts", "0",
+               "--fill-generations", "1", "--fill-rounds", "1", "--workers", "2", "--out", str(out),
+               "--workdir", str(tmp_path / "ck"))
+    assert r.returncode == 0, r.stderr
+    assert f"1 m: kept from {DEFAULT_LIBRARY}" in r.stdout and "3 m: " in r.stdout
+    base, new = load_library(), load_library(out)
+    assert new.heights == [1.0, 3.0] and (new.radius_deg, new.sigma_deg) == (base.radius_deg, base.sigma_deg)
+    b1, n1 = base.shelf(1.0), new.shelf(1.0)
+    assert np.array_equal(b1.x, n1.x) and np.array_equal(b1.lands, n1.lands) and np.array_equal(b1.probe_up,
+                                                                                                 n1.probe_up)
+    n3 = new.shelf(3.0)
+    assert len(n3.probe_up) == len(fibonacci_ups(20, 60.0)) and n3.sigma_deg is None
+    assert len(n3.up) >= len(fibonacci_ups(12, 60.0)) and n3.lands.shape == (len(n3.probe_up), 2 * len(n3.up))
+    doc = json.loads(out.read_text())
+    assert doc["made_by"] == base.meta["made_by"] and doc["extended_by"][-1].startswith(
+        "felis train landing-library --base")
+    assert doc["rebuilt"] == [{"heights": [3.0], "grid": {"sphere_points": 12, "probe_points": 20,
+                                                          "max_tilt_deg": 60.0}, "search": doc["rebuilt"][0]["search"]}]
+    assert doc["rebuilt"][0]["search"]["generations"] == 1
+    assert all(a["height_m"] != 3.0 for a in doc.get("added", []) + doc.get("probes_added", []))
+    r = _felis("eval", "landing", "--drops", "random:2", "--height", "3", "--policy", str(out), "--json")
+    assert r.returncode == 0, r.stderr
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    r = _felis("train", "landing-library", "--base", str(bad), "--heights", "3", "--out", str(tmp_path / "o.json"))
+    assert r.returncode != 0 and str(bad) in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "o.json").exists() and not (tmp_path / "o.ckpt").exists()
 
 
 def test_a_shelf_with_its_own_narrow_sigma_follows_its_nearest_probes_and_keeps_it_in_the_file():
