@@ -22,12 +22,20 @@ Jobs travel in batches of ``chunksize`` (default: about four batches per worker 
 per-task overhead (pickling, scheduling) is paid per batch rather than per rollout.
 
 `make_evaluator` picks one from the command line's ``--ray ADDRESS`` / ``--workers N``.
+
+**Stopping** (`worker_pool`, `kill_pool`): a pool worker ignores Ctrl-C and dies of SIGTERM and SIGHUP; the
+parent, whose `felis.shutdown` turns the signal into `Interrupted`, kills its workers at once and lets the
+exception go on, so a stopped command ends in well under a second with what its checkpoints hold, never waiting
+for a search in a worker to finish. (Workers forked inside `felis.shutdown.signals` used to inherit its handler,
+which ignores every signal after the first: a pool torn down after a SIGTERM to the process group waited for
+ever on workers that ignored its own SIGTERM.)
 """
 
 from __future__ import annotations
 
 import math
 import os
+import signal
 import sys
 import uuid
 from collections.abc import Callable, Sequence
@@ -45,6 +53,30 @@ def worker_count(workers: int | None, n_jobs: int) -> int:
     return max(1, min(workers or os.cpu_count() or 1, n_jobs))
 
 
+def _worker_signals(initializer: Callable[..., None] | None, initargs: tuple) -> None:
+    """A pool worker's first act (module doc, Stopping), then the caller's ``initializer``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if s is not None:
+            signal.signal(s, signal.SIG_DFL)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def worker_pool(workers: int, initializer: Callable[..., None] | None = None,
+                initargs: tuple = ()) -> ProcessPoolExecutor:
+    """A process pool whose workers leave stopping to this process (module doc, Stopping)."""
+    return ProcessPoolExecutor(workers, initializer=_worker_signals, initargs=(initializer, tuple(initargs)))
+
+
+def kill_pool(pool: ProcessPoolExecutor) -> None:
+    """End ``pool`` now: its workers killed (they hold nothing a checkpoint needs: the parent writes those),
+    queued jobs cancelled, no wait for running ones."""
+    for p in list((getattr(pool, "_processes", None) or {}).values()):
+        p.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
 def run_jobs(fn: Callable[[Any], Any], jobs: Sequence, workers: int, initializer: Callable[..., None] | None = None,
              initargs: tuple = (), chunksize: int = 4, progress: Callable[[int], None] | None = None) -> list:
     """``fn`` over ``jobs``, results in job order: inline when ``workers`` is 1 (``initializer(*initargs)``
@@ -60,11 +92,16 @@ def run_jobs(fn: Callable[[Any], Any], jobs: Sequence, workers: int, initializer
             if progress:
                 progress(1)
         return out
-    with ProcessPoolExecutor(workers, initializer=initializer, initargs=initargs) as pool:
+    pool = worker_pool(workers, initializer, initargs)
+    try:
         for result in pool.map(fn, jobs, chunksize=chunksize):
             out.append(result)
             if progress:
                 progress(1)
+    except BaseException:  # Ctrl-C, SIGTERM, a job's error: nothing more is wanted from the workers
+        kill_pool(pool)
+        raise
+    pool.shutdown(wait=True)
     return out
 
 
@@ -90,7 +127,7 @@ def single_threaded():
 
 
 def _pool_init(initializer: Callable[..., None] | None, initargs: tuple) -> None:
-    """Initializer of a pool worker process: single-threaded libraries, then the caller's initializer."""
+    """Initializer of an evaluator's worker process: single-threaded libraries, then the caller's initializer."""
     single_threaded()
     if initializer is not None:
         initializer(*initargs)
@@ -141,14 +178,17 @@ class ProcessPoolEvaluator:
                 if limiter is not None:
                     limiter.restore_original_limits()
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(self.workers, initializer=_pool_init,
-                                             initargs=(self.initializer, self.initargs))
+            self._pool = worker_pool(self.workers, _pool_init, (self.initializer, self.initargs))
         try:
             return list(self._pool.map(fn, jobs, chunksize=_chunk(len(jobs), self.workers, self.chunksize)))
         except BrokenProcessPool:
             self._pool = None
             raise EvaluatorError(f"a worker process of the {self.workers}-process pool died (out of memory or a "
                                  "crash); rerun with fewer workers, or resume from the last checkpoint") from None
+        except BaseException:  # Ctrl-C, SIGTERM, a job's error: stop the workers now (module doc, Stopping)
+            pool, self._pool = self._pool, None
+            kill_pool(pool)
+            raise
 
     def close(self) -> None:
         if self._pool is not None:

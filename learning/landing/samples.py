@@ -95,7 +95,6 @@ import time
 import zipfile
 import zlib
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -104,6 +103,7 @@ import numpy as np
 
 from felis.errors import ParameterError
 from felis.files import MAX_ARRAY_BYTES, check_readable, write_atomic
+from felis.learning.common.evaluator import run_jobs
 from felis.learning.landing.nets import LANDING_HEIGHT_MM
 from felis.learning.landing.policy import JOINTS, MAX_SPEED
 
@@ -411,8 +411,7 @@ def make_samples(out_json: str | Path, seed: int = 0, workers: int | None = None
     if workers == 1:
         results = [_tune_one(j) for j in jobs]
     else:
-        with ProcessPoolExecutor(workers) as pool:
-            results = list(pool.map(_tune_one, jobs))
+        results = run_jobs(_tune_one, jobs, workers, chunksize=1)
     results.sort(key=lambda r: r["index"])
     samples, entries = [], []
     for res in results:

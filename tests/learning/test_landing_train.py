@@ -119,6 +119,42 @@ def test_a_dying_worker_is_one_line():
         ev.close()
 
 
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
+def test_a_signal_to_the_process_group_stops_a_search_with_idle_workers_at_once(tmp_path, signame):
+    """`timeout` and a terminal's Ctrl-C signal the whole process group, pool workers too. A search with more
+    workers than drops (idle ones) hung for ever after SIGTERM: the workers had inherited `felis.shutdown`'s
+    handler, which ignores a second signal, so the pool's own teardown could not end them. Now the command ends
+    at once (exit 130, one line), its workers with it, and its checkpoint keeps its header."""
+    import signal
+    import subprocess
+    import time
+
+    wd = tmp_path / "wd"
+    argv = [sys.executable, "-m", "felis", "train", "landing-library", "--heights", "3", "--grid", "8", "--max-tilt",
+            "180", "--probes", "20", "--workers", "6", "--out", str(tmp_path / "lib.json"), "--workdir", str(wd)]
+    p = subprocess.Popen(argv, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        ckpt, t0 = wd / "3m" / "optimum.jsonl", time.monotonic()
+        while not ckpt.exists() and p.poll() is None and time.monotonic() - t0 < 120:
+            time.sleep(0.1)
+        time.sleep(2.0)  # the workers are started and searching (or waiting for a drop)
+        assert p.poll() is None, p.communicate()
+        os.killpg(p.pid, getattr(signal, signame))
+        t0 = time.monotonic()
+        _, err = p.communicate(timeout=60)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    assert p.returncode == 130 and err.strip() == f"error: interrupted ({signame})", err
+    assert took < 30, took  # measured 0.1 s on 2 cores; before, never
+    time.sleep(0.5)
+    with pytest.raises(ProcessLookupError):  # no worker left in the group
+        os.killpg(p.pid, 0)
+    assert json.loads(ckpt.read_text().splitlines()[0])["settings"]["generations"] == 30
+
+
 def test_inline_evaluator_runs_its_initializer_once():
     calls = []
     ev = ProcessPoolEvaluator(workers=1, initializer=calls.append, initargs=("x",))
