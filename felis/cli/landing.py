@@ -104,6 +104,9 @@ def register_train(train_sub) -> None:
                    help="the library --add or --add-probes extends (default: the shipped one, "
                    f"learning/weights/{DEFAULT_LIBRARY.name}); with a search: the library whose --heights shelves "
                    "the search rebuilds, its other shelves kept")
+    b.add_argument("--join", type=Path, metavar="LIBRARY.json",
+                   help="no search: the --heights shelves of --base also hold this library's motions for those "
+                   "heights (the same probes needed), so the vote chooses among both searches' candidates")
     b.add_argument("--add-probes", type=int, metavar="N",
                    help="no search: add the probes of an N-point Fibonacci sphere to the --heights shelves of --base, "
                    "each tried with the motions within --probe-radius of it (a denser grid for a narrower vote)")
@@ -238,8 +241,10 @@ def cmd_train_library(args) -> int:
                              f"and {args.fill_rounds}")
     check_target(out, "landing motion library", ParameterError)
     command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    if args.add and args.add_probes is not None:
-        raise ParameterError("--add and --add-probes: one at a time")
+    if sum(x is not None and x != [] for x in (args.add, args.add_probes, args.join)) > 1:
+        raise ParameterError("--add, --add-probes and --join: one at a time")
+    if args.join is not None:
+        return _join_libraries(args, out, command)
     if args.add:
         return _add_to_library(args, out, command)
     if args.add_probes is not None:
@@ -314,6 +319,22 @@ def _add_to_library(args, out: Path, command: str) -> int:
         print(f"{a['motion']}: {a['height_m']:g} m shelf, drop ({d['roll_deg']:g}, {d['pitch_deg']:g}, "
               f"{d['yaw_deg']:g}) {'lands' if a['landed'] else 'does NOT land'} its own attitude; "
               f"{a['probes_landed']} probes landed by it or its mirror image")
+    print(f"library: {out} (from {base})")
+    return 0
+
+
+def _join_libraries(args, out: Path, command: str) -> int:
+    """``felis train landing-library --join OTHER [--base LIBRARY] [--heights H…]``: `join_shelves`."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
+    from felis.learning.landing.library_build import join_shelves
+
+    base = args.base or DEFAULT_LIBRARY
+    lib = join_shelves(load_library(base), load_library(args.join), args.heights, command)
+    _write_library(out, lib)
+    for a in lib.meta["joined"][-len(args.heights):]:
+        s = lib.shelf(a["height_m"])
+        print(f"{a['height_m']:g} m: {a['entries']} entries joined from {args.join}, {len(s.up)} in all; "
+              f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion")
     print(f"library: {out} (from {base})")
     return 0
 

@@ -10,7 +10,8 @@ lands, searched from the nearest candidate (`fill`, `fill_targets`), then its tr
 (``fill_rounds``) do the same for the probes where the choice, their own vote left out, picks a motion that fails.
 Checkpoints per height in ``WORKDIR/<h>m/``: ``optimum.jsonl`` (per drop), ``robust.npz``, ``probes.npy``,
 ``fill.npz`` (``fill2.npz``…); ``resume`` goes on from them. Deterministic for a seed. `replace_shelves` puts
-the shelves built into another library (``--base``: one shelf rebuilt, the others kept).
+the shelves built into another library (``--base``: one shelf rebuilt, the others kept); `join_shelves` puts two
+libraries' motions for a height on one shelf (``--join``).
 """
 
 from __future__ import annotations
@@ -398,6 +399,40 @@ def replace_shelves(base: MotionLibrary, built: MotionLibrary, command: str = ""
     rebuilt = [{"heights": sorted(new), **{k: built.meta[k] for k in ("grid", "search") if k in built.meta}}]
     return _extended(MotionLibrary(list(shelves.values()), base.radius_deg, base.sigma_deg, meta=meta), shelves,
                      "rebuilt", rebuilt, command)
+
+
+def join_shelves(base: MotionLibrary, other: MotionLibrary, heights: Sequence[float],
+                 command: str = "") -> MotionLibrary:
+    """``base`` whose shelves of ``heights`` also hold ``other``'s motions for those heights: the entries (those not
+    in ``base`` already) appended and their verdicts on the probes kept, so the vote chooses among both searches'
+    candidates. Both shelves must have the same probes (build both the same way, or give both the same
+    ``--add-probes``): a verdict is only comparable on the same attitude. ``base``'s vote and other shelves are
+    kept; the meta records the join (``joined``) and the command."""
+    shelves = {s.height_m: s for s in base.shelves}
+    joined = []
+    for h in heights:
+        mine = next((s for hh, s in shelves.items() if math.isclose(hh, float(h), rel_tol=1e-6)), None)
+        theirs = next((s for s in other.shelves if math.isclose(s.height_m, float(h), rel_tol=1e-6)), None)
+        if mine is None or theirs is None:
+            lacks = "--base" if mine is None else "--join"
+            raise ParameterError(f"--heights {h:g}: the {lacks} library has no shelf for that height")
+        if mine.probe_up.shape != theirs.probe_up.shape or not np.allclose(mine.probe_up, theirs.probe_up,
+                                                                          atol=1e-6):
+            raise ParameterError(f"{h:g} m: the two shelves have different probes ({len(mine.probe_up)} and "
+                                 f"{len(theirs.probe_up)}); give both the same --add-probes first")
+        new = [i for i in range(len(theirs.x)) if not np.any(np.all(mine.x == theirs.x[i], axis=1))]
+        cols = np.array([2 * i + k for i in new for k in (0, 1)], dtype=int)
+        drops = None
+        if mine.drops is not None and theirs.drops is not None:
+            drops = list(mine.drops) + [theirs.drops[i] for i in new]
+        shelves[mine.height_m] = Shelf(mine.height_m, np.concatenate([mine.up, theirs.up[new]]),
+                                       np.concatenate([mine.x, theirs.x[new]]),
+                                       np.concatenate([mine.landed, theirs.landed[new]]), mine.probe_up,
+                                       np.concatenate([mine.lands, theirs.lands[:, cols]], axis=1), drops,
+                                       mine.sigma_deg)
+        joined.append({"height_m": mine.height_m, "entries": len(new), "made_by": other.meta.get("made_by", ""),
+                       **({"extended_by": other.meta["extended_by"]} if other.meta.get("extended_by") else {})})
+    return _extended(base, shelves, "joined", joined, command)
 
 
 def _extended(lib: MotionLibrary, shelves: dict, key: str, added: list, command: str) -> MotionLibrary:

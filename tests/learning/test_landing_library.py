@@ -329,6 +329,44 @@ def test_a_shelf_with_its_own_narrow_sigma_follows_its_nearest_probes_and_keeps_
             library_from_dict(doc)
 
 
+def test_join_puts_another_librarys_motions_on_the_shelf_with_their_verdicts_and_refuses_other_probes(tmp_path):
+    """`felis train landing-library --join OTHER --heights 3`: OTHER's 3 m entries not already there are appended
+    with their verdicts on the (same) probes, so the vote can pick them; the 1 m shelf and the vote are kept; a
+    shelf with other probes, or --join with --add, is one line."""
+    base = load_library()
+    b3 = base.shelf(3.0)
+    x_new = b3.x[5] + 0.01
+    lands = np.zeros((len(b3.probe_up), 4), dtype=bool)
+    p = int(np.flatnonzero(~b3.lands.any(axis=1))[0])  # a probe no motion of the base lands
+    lands[p, 2] = True  # the new motion lands it
+    other = MotionLibrary([Shelf(3.0, b3.up[[5, 5]], np.stack([b3.x[5], x_new]), np.array([True, True]),
+                                 b3.probe_up, lands)], meta={"made_by": "test other"})
+    other_path, out = tmp_path / "other.json", tmp_path / "joined.json"
+    other_path.write_text(json.dumps(other.as_dict()))
+    r = _felis("train", "landing-library", "--join", str(other_path), "--heights", "3", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert f"3 m: 1 entries joined from {other_path}, {len(b3.up) + 1} in all" in r.stdout
+    j = load_library(out)
+    j3 = j.shelf(3.0)
+    assert np.array_equal(j3.x[:-1], b3.x) and np.allclose(j3.x[-1], x_new)  # the duplicate of entry 5 skipped
+    assert np.array_equal(j3.lands[:, :-2], b3.lands) and np.array_equal(j3.lands[:, -2:], lands[:, 2:])
+    assert j3.sigma_deg == b3.sigma_deg and np.array_equal(j.shelf(1.0).lands, base.shelf(1.0).lands)
+    doc = json.loads(out.read_text())
+    assert doc["joined"] == [{"height_m": 3.0, "entries": 1, "made_by": "test other"}]
+    assert j3.choose(j3.probe_up[p], j.radius_deg, j3.sigma_deg)[1] == 2 * len(b3.up)  # the vote picks it there
+    assert base.shelf(3.0).choose(b3.probe_up[p], base.radius_deg, b3.sigma_deg)[1] != 2 * len(b3.up)
+    fewer = MotionLibrary([Shelf(3.0, b3.up[:1], b3.x[:1] + 0.02, b3.landed[:1], b3.probe_up[:-1],
+                                 np.zeros((len(b3.probe_up) - 1, 2), dtype=bool))])
+    fewer_path = tmp_path / "fewer.json"
+    fewer_path.write_text(json.dumps(fewer.as_dict()))
+    for argv, words in ((("--join", str(fewer_path), "--heights", "3"), "3 m: the two shelves have different probes"),
+                        (("--join", str(other_path), "--heights", "1"), "the --join library has no shelf"),
+                        (("--join", str(other_path), "--add-probes", "10"), "one at a time")):
+        r = _felis("train", "landing-library", *argv, "--out", str(tmp_path / "o.json"))
+        assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not (tmp_path / "o.json").exists()
+
+
 def test_add_probes_tries_a_denser_grid_on_a_shelf_keeps_what_it_had_and_resumes(tmp_path):
     """`felis train landing-library --add-probes N --heights 3`: the new probes (an N-point sphere's attitudes)
     are tried with the 3 m motions near them; the old probes' results and the 1 m shelf are unchanged; a resumed
