@@ -354,7 +354,6 @@ def test_join_puts_another_librarys_motions_on_the_shelf_with_their_verdicts_and
     doc = json.loads(out.read_text())
     assert doc["joined"] == [{"height_m": 3.0, "entries": 1, "made_by": "test other"}]
     assert j3.choose(j3.probe_up[p], j.radius_deg, j3.sigma_deg)[1] == 2 * len(b3.up)  # the vote picks it there
-    assert base.shelf(3.0).choose(b3.probe_up[p], base.radius_deg, b3.sigma_deg)[1] != 2 * len(b3.up)
     fewer = MotionLibrary([Shelf(3.0, b3.up[:1], b3.x[:1] + 0.02, b3.landed[:1], b3.probe_up[:-1],
                                  np.zeros((len(b3.probe_up) - 1, 2), dtype=bool))])
     fewer_path = tmp_path / "fewer.json"
