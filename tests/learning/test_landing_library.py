@@ -408,7 +408,7 @@ def test_add_probes_refuses_a_height_without_a_shelf_and_bad_numbers_in_one_line
                         (("--add-probes", "10", "--sigma", "0"), "--sigma must be a positive number"),
                         (("--add-probes", "0"), "points ≥ 1"),
                         (("--add-probes", "10", "--add", str(DEFAULT_LIBRARY.parent / "landing_hard_drop.json")),
-                         "--add and --add-probes: one at a time")):
+                         "--add, --add-probes and --join: one at a time")):
         r = _felis("train", "landing-library", *argv, "--out", str(o))
         assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not o.exists()
