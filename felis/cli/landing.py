@@ -113,7 +113,7 @@ def register_train(train_sub) -> None:
     b.add_argument("--probe-radius", type=float, default=30.0, metavar="DEG",
                    help="--add-probes: try the motions within this angle of each new probe (default 30)")
     b.add_argument("--sigma", type=float, metavar="DEG",
-                   help="--add-probes: the vote width of those shelves (default: the library's)")
+                   help="--add-probes, --join: the vote width of those shelves (default: as it was)")
     b.set_defaults(func=cmd_train_library)
 
 
@@ -329,12 +329,14 @@ def _join_libraries(args, out: Path, command: str) -> int:
     from felis.learning.landing.library_build import join_shelves
 
     base = args.base or DEFAULT_LIBRARY
-    lib = join_shelves(load_library(base), load_library(args.join), args.heights, command)
+    lib = join_shelves(load_library(base), load_library(args.join), args.heights, sigma_deg=args.sigma,
+                       command=command)
     _write_library(out, lib)
     for a in lib.meta["joined"][-len(args.heights):]:
         s = lib.shelf(a["height_m"])
         print(f"{a['height_m']:g} m: {a['entries']} entries joined from {args.join}, {len(s.up)} in all; "
-              f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion")
+              f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion"
+              + (f"; vote σ {a['sigma_deg']:g}°" if "sigma_deg" in a else ""))
     print(f"library: {out} (from {base})")
     return 0
 

@@ -401,13 +401,16 @@ def replace_shelves(base: MotionLibrary, built: MotionLibrary, command: str = ""
                      "rebuilt", rebuilt, command)
 
 
-def join_shelves(base: MotionLibrary, other: MotionLibrary, heights: Sequence[float],
-                 command: str = "") -> MotionLibrary:
+def join_shelves(base: MotionLibrary, other: MotionLibrary, heights: Sequence[float], *,
+                 sigma_deg: float | None = None, command: str = "") -> MotionLibrary:
     """``base`` whose shelves of ``heights`` also hold ``other``'s motions for those heights: the entries (those not
     in ``base`` already) appended and their verdicts on the probes kept, so the vote chooses among both searches'
     candidates. Both shelves must have the same probes (build both the same way, or give both the same
-    ``--add-probes``): a verdict is only comparable on the same attitude. ``base``'s vote and other shelves are
-    kept; the meta records the join (``joined``) and the command."""
+    ``--add-probes``): a verdict is only comparable on the same attitude. ``sigma_deg``: those shelves' vote
+    width (None: as it was); ``base``'s other shelves are kept; the meta records the join (``joined``) and the
+    command."""
+    if sigma_deg is not None and not (math.isfinite(sigma_deg) and sigma_deg > 0):
+        raise ParameterError(f"--sigma must be a positive number of degrees, got {sigma_deg}")
     shelves = {s.height_m: s for s in base.shelves}
     joined = []
     for h in heights:
@@ -429,8 +432,9 @@ def join_shelves(base: MotionLibrary, other: MotionLibrary, heights: Sequence[fl
                                        np.concatenate([mine.x, theirs.x[new]]),
                                        np.concatenate([mine.landed, theirs.landed[new]]), mine.probe_up,
                                        np.concatenate([mine.lands, theirs.lands[:, cols]], axis=1), drops,
-                                       mine.sigma_deg)
+                                       mine.sigma_deg if sigma_deg is None else float(sigma_deg))
         joined.append({"height_m": mine.height_m, "entries": len(new), "made_by": other.meta.get("made_by", ""),
+                       **({} if sigma_deg is None else {"sigma_deg": float(sigma_deg)}),
                        **({"extended_by": other.meta["extended_by"]} if other.meta.get("extended_by") else {})})
     return _extended(base, shelves, "joined", joined, command)
 

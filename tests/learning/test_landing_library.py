@@ -346,6 +346,11 @@ def test_join_puts_another_librarys_motions_on_the_shelf_with_their_verdicts_and
     r = _felis("train", "landing-library", "--join", str(other_path), "--heights", "3", "--out", str(out))
     assert r.returncode == 0, r.stderr
     assert f"3 m: 1 entries joined from {other_path}, {len(b3.up) + 1} in all" in r.stdout
+    r = _felis("train", "landing-library", "--join", str(other_path), "--heights", "3", "--sigma", "0.8", "--out",
+               str(tmp_path / "narrow.json"))
+    assert r.returncode == 0 and r.stdout.splitlines()[0].endswith("; vote σ 0.8°"), r.stderr
+    narrow = load_library(tmp_path / "narrow.json")
+    assert narrow.shelf(3.0).sigma_deg == 0.8 and narrow.shelf(1.0).sigma_deg == base.shelf(1.0).sigma_deg
     j = load_library(out)
     j3 = j.shelf(3.0)
     assert np.array_equal(j3.x[:-1], b3.x) and np.allclose(j3.x[-1], x_new)  # the duplicate of entry 5 skipped
@@ -360,7 +365,8 @@ def test_join_puts_another_librarys_motions_on_the_shelf_with_their_verdicts_and
     fewer_path.write_text(json.dumps(fewer.as_dict()))
     for argv, words in ((("--join", str(fewer_path), "--heights", "3"), "3 m: the two shelves have different probes"),
                         (("--join", str(other_path), "--heights", "1"), "the --join library has no shelf"),
-                        (("--join", str(other_path), "--add-probes", "10"), "one at a time")):
+                        (("--join", str(other_path), "--add-probes", "10"), "one at a time"),
+                        (("--join", str(other_path), "--heights", "3", "--sigma", "-1"), "--sigma must be a positive")):
         r = _felis("train", "landing-library", *argv, "--out", str(tmp_path / "o.json"))
         assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "o.json").exists()
