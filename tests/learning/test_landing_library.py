@@ -357,7 +357,7 @@ def test_join_puts_another_librarys_motions_on_the_shelf_with_their_verdicts_and
     assert np.array_equal(j3.lands[:, :-2], b3.lands) and np.array_equal(j3.lands[:, -2:], lands[:, 2:])
     assert j3.sigma_deg == b3.sigma_deg and np.array_equal(j.shelf(1.0).lands, base.shelf(1.0).lands)
     doc = json.loads(out.read_text())
-    assert doc["joined"] == [{"height_m": 3.0, "entries": 1, "made_by": "test other"}]
+    assert doc["joined"][-1] == {"height_m": 3.0, "entries": 1, "made_by": "test other"}
     assert j3.choose(j3.probe_up[p], j.radius_deg, j3.sigma_deg)[1] == 2 * len(b3.up)  # the vote picks it there
     fewer = MotionLibrary([Shelf(3.0, b3.up[:1], b3.x[:1] + 0.02, b3.landed[:1], b3.probe_up[:-1],
                                  np.zeros((len(b3.probe_up) - 1, 2), dtype=bool))])
@@ -420,7 +420,7 @@ def test_add_probes_refuses_a_height_without_a_shelf_and_bad_numbers_in_one_line
         assert not o.exists()
 
 
-@pytest.mark.parametrize("height, want", [(1.0, (55, 44)), (3.0, (47, 33))])
+@pytest.mark.parametrize("height, want", [(1.0, (55, 44)), (3.0, (56, 33))])
 def test_the_shipped_library_lands_what_the_docs_say_on_random_100(height, want):
     """README and docs/landing.md: the default policy on `random:100` seeds 0 and 1. The rollouts are deterministic
     on a machine; ±1 allows for another CPU's floating point at a drop on the edge."""
