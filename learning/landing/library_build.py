@@ -281,6 +281,11 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
     return MotionLibrary(shelves, meta=meta)
 
 
+def _shelf_at(shelves, height_m: float) -> Shelf | None:
+    """The shelf of exactly that drop height (None if there is none)."""
+    return next((s for s in shelves if math.isclose(s.height_m, float(height_m), rel_tol=1e-6)), None)
+
+
 def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, str]], *, workers: int | None = None,
                 command: str = "", progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """``lib`` with more entries: each motion (x (55,), the drop it was searched for, its name), for example one
@@ -299,7 +304,7 @@ def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, st
     try:
         for x, drop, name in motions:
             h = float(drop["height_m"])
-            shelf = next((s for hh, s in shelves.items() if math.isclose(hh, h, rel_tol=1e-6)), None)
+            shelf = _shelf_at(shelves.values(), h)
             if shelf is None:
                 raise ParameterError(f"{name}: a motion for a {h:g} m drop; the library has shelves at "
                                      f"{', '.join(f'{s:g}' for s in shelves)} m only (a motion is timed for its fall)")
@@ -345,7 +350,7 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     shelves = {s.height_m: s for s in lib.shelves}
     targets = []
     for h in heights:
-        shelf = next((s for hh, s in shelves.items() if math.isclose(hh, float(h), rel_tol=1e-6)), None)
+        shelf = _shelf_at(shelves.values(), h)
         if shelf is None:
             raise ParameterError(f"--heights {h:g}: the library has shelves at "
                                  f"{', '.join(f'{s:g}' for s in shelves)} m only")
@@ -414,8 +419,8 @@ def join_shelves(base: MotionLibrary, other: MotionLibrary, heights: Sequence[fl
     shelves = {s.height_m: s for s in base.shelves}
     joined = []
     for h in heights:
-        mine = next((s for hh, s in shelves.items() if math.isclose(hh, float(h), rel_tol=1e-6)), None)
-        theirs = next((s for s in other.shelves if math.isclose(s.height_m, float(h), rel_tol=1e-6)), None)
+        mine = _shelf_at(shelves.values(), h)
+        theirs = _shelf_at(other.shelves, h)
         if mine is None or theirs is None:
             lacks = "--base" if mine is None else "--join"
             raise ParameterError(f"--heights {h:g}: the {lacks} library has no shelf for that height")
