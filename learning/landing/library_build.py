@@ -281,6 +281,11 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
     return MotionLibrary(shelves, meta=meta)
 
 
+def _check_sigma(sigma_deg: float | None) -> None:
+    if sigma_deg is not None and not (math.isfinite(sigma_deg) and sigma_deg > 0):
+        raise ParameterError(f"--sigma must be a positive number of degrees, got {sigma_deg}")
+
+
 def _shelf_at(shelves, height_m: float) -> Shelf | None:
     """The shelf of exactly that drop height (None if there is none)."""
     return next((s for s in shelves if math.isclose(s.height_m, float(height_m), rel_tol=1e-6)), None)
@@ -345,8 +350,7 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     if points < 1 or not 0 < radius_deg <= 180 or not 0 < max_tilt_deg <= 180:
         raise ParameterError(f"--add-probes needs points ≥ 1, and --probe-radius and --max-tilt within (0, 180] "
                              f"degrees; got {points} points, radius {radius_deg:g}°, maximum tilt {max_tilt_deg:g}°")
-    if sigma_deg is not None and not (math.isfinite(sigma_deg) and sigma_deg > 0):
-        raise ParameterError(f"--sigma must be a positive number of degrees, got {sigma_deg}")
+    _check_sigma(sigma_deg)
     shelves = {s.height_m: s for s in lib.shelves}
     targets = []
     for h in heights:
@@ -414,8 +418,7 @@ def join_shelves(base: MotionLibrary, other: MotionLibrary, heights: Sequence[fl
     ``--add-probes``): a verdict is only comparable on the same attitude. ``sigma_deg``: those shelves' vote
     width (None: as it was); ``base``'s other shelves are kept; the meta records the join (``joined``) and the
     command."""
-    if sigma_deg is not None and not (math.isfinite(sigma_deg) and sigma_deg > 0):
-        raise ParameterError(f"--sigma must be a positive number of degrees, got {sigma_deg}")
+    _check_sigma(sigma_deg)
     shelves = {s.height_m: s for s in base.shelves}
     joined = []
     for h in heights:
