@@ -394,10 +394,8 @@ def replace_shelves(base: MotionLibrary, built: MotionLibrary, command: str = ""
     one shelf rebuilt, say with another search, the others kept. ``base``'s vote (radius, σ) is kept; the
     records of what was added to the replaced shelves (``added``, ``probes_added``) go with them, and the meta
     records the rebuild (``rebuilt``: the heights, ``built``'s grid and search) and the command (``extended_by``)."""
-    new = {s.height_m for s in built.shelves}
-
     def replaced(h: float) -> bool:
-        return any(math.isclose(float(h), n, rel_tol=1e-6) for n in new)
+        return _shelf_at(built.shelves, h) is not None
 
     shelves = {s.height_m: s for s in base.shelves if not replaced(s.height_m)}
     shelves.update({s.height_m: s for s in built.shelves})
@@ -405,7 +403,7 @@ def replace_shelves(base: MotionLibrary, built: MotionLibrary, command: str = ""
     for key in ("added", "probes_added"):
         if key in meta:
             meta[key] = [a for a in meta[key] if not replaced(a["height_m"])]
-    rebuilt = [{"heights": sorted(new), **{k: built.meta[k] for k in ("grid", "search") if k in built.meta}}]
+    rebuilt = [{"heights": built.heights, **{k: built.meta[k] for k in ("grid", "search") if k in built.meta}}]
     return _extended(MotionLibrary(list(shelves.values()), base.radius_deg, base.sigma_deg, meta=meta), shelves,
                      "rebuilt", rebuilt, command)
 
