@@ -84,8 +84,9 @@ def robustify(sim, ups: np.ndarray, xs: np.ndarray, height_m: float, *, offset_d
     drops = [[up_drop(v, height_m) for v in neighbours(u, offset_deg)] for u in ups]
     K = len(drops[0]) if drops else 0
 
-    def judge(cands: list[np.ndarray]) -> tuple:  # per entry (n, 55) → mean scores, landings, centre landed
-        flat_d = [d for i, c in enumerate(cands) for _ in range(len(c)) for d in drops[i]]
+    def judge(ids: list[int], cands: list[np.ndarray]) -> tuple:  # entry ids[a]'s cands[a] (n, 55) → mean
+        # scores, landings, centre landed; each entry's candidates on that entry's own five drops
+        flat_d = [d for i, c in zip(ids, cands, strict=True) for _ in range(len(c)) for d in drops[i]]
         flat_x = np.concatenate([np.repeat(c, K, axis=0) for c in cands])
         res = evaluate(sim, flat_d, flat_x)
         sc = np.array([r[0] for r in res]).reshape(-1, K)
@@ -93,8 +94,8 @@ def robustify(sim, ups: np.ndarray, xs: np.ndarray, height_m: float, *, offset_d
         return sc.mean(axis=1), ld.sum(axis=1), ld[:, 0]
 
     best_x = np.array(xs, dtype=float)
-    best_s, best_n, best_c = judge([x[None] for x in best_x]) if E else (np.zeros(0), np.zeros(0, int),
-                                                                           np.zeros(0, bool))
+    best_s, best_n, best_c = (judge(list(range(E)), [x[None] for x in best_x]) if E
+                              else (np.zeros(0), np.zeros(0, int), np.zeros(0, bool)))
     es = [cma.CMAEvolutionStrategy(best_x[i], sigma, {"popsize": population, "bounds": [-1.0, 1.0], "verbose": -9,
                                                       "seed": int(seed * 100003 + i * 101 + 7)}) for i in range(E)]
     for g in range(generations):
@@ -104,7 +105,7 @@ def robustify(sim, ups: np.ndarray, xs: np.ndarray, height_m: float, *, offset_d
         if not active:
             break
         asks = [np.array(es[i].ask()) for i in active]
-        sc, ld, lc = judge(asks)
+        sc, ld, lc = judge(active, asks)
         for a, i in enumerate(active):
             part = slice(a * population, (a + 1) * population)
             es[i].tell(list(asks[a]), list(-sc[part]))

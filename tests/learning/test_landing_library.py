@@ -168,6 +168,29 @@ def test_the_shipped_library_batched_equals_sequential():
         assert abs(x.touchdown_s - y.touchdown_s) < 1e-9 and abs(x.tilt_deg - y.tilt_deg) < 1e-3
 
 
+def test_robustify_judges_each_entry_on_its_own_attitudes_when_others_are_done():
+    """Entry 0 of the shipped 1 m shelf lands its attitude and four 6° round it already, so it leaves the search
+    at once; entries 6 and 10 do not. Whatever robustify returns for each must land as many of that entry's own
+    five drops (and its centre) as it says. (It once judged the entries still searching on the drops of the
+    first ones by position, so a twin's verdict belonged to another attitude.)"""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.library_build import neighbours, robustify, up_drop
+    from felis.learning.landing.optimum import evaluate
+
+    shelf = load_library().shelf(1.0)
+    rows = [0, 6, 10]
+    sim = BatchLandingSim(nthread=1)
+    try:
+        x, n, centre = robustify(sim, shelf.up[rows], shelf.x[rows], 1.0, generations=2, population=4)
+        drops = [up_drop(v, 1.0) for r in rows for v in neighbours(shelf.up[r], 6.0)]
+        landed = np.array([v.landed for _, v in evaluate(sim, drops, np.repeat(x, 5, axis=0))]).reshape(3, 5)
+    finally:
+        sim.close()
+    assert n[0] == 5 and n[1] < 5  # entry 0 done at once, entry 6 still searching after it
+    assert landed.sum(axis=1).tolist() == n.tolist()
+    assert landed[:, 0].tolist() == centre.tolist()
+
+
 def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
     from felis.learning.landing.library_build import build_library, fibonacci_ups
 
