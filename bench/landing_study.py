@@ -29,12 +29,15 @@ Run (about 25 min on 2 cores; ``--quick`` for a smoke run; ``make landing-study`
 runs/landing_study.json)::
 
     MUJOCO_GL=egl .venv/bin/python bench/landing_study.py [--seeds 0 1 2] [--json OUT.json] [--ray-address A] [--quick]
-        [--samples spine|wholebody]
+        [--samples spine|wholebody|library]
 
 ``--samples wholebody`` (issue 21, item 7) trains on the whole-body motion samples instead
 (`felis.learning.landing.wholebody`, 24 orientations from 3 m): the 7 nearest the paper's 7 orientations by
 up-axis (`nearest_samples`) take their place as the training orientations, and orientations 1 and 4 of
-experiment 1 are the ones nearest (180, 0, 0) and (90, 0, 0); everything else is as above.
+experiment 1 are the ones nearest (180, 0, 0) and (90, 0, 0); everything else is as above. ``--samples
+library`` trains on whole-body samples that land (``learning/weights/landing_samples_library.json``, made by
+`felis.learning.landing.wholebody.make_library_samples`: per paper orientation, in order, the motion library's
+landing motion whose start is nearest it): a file of exactly 7 samples stands in the paper's order.
 """
 
 from __future__ import annotations
@@ -59,6 +62,8 @@ from felis.scenarios.drop import Drop  # noqa: E402
 UNTRAINED = ((160.0, 20.0, 0.0), (-110.0, 10.0, 0.0), (110.0, -30.0, 0.0), (-160.0, -20.0, 45.0))
 EXP1_ORIENTATIONS = (0, 3)  # samples 0 (180, 0, 0) and 3 (90, 0, 0): the paper's "orientation 1", and 4
 WHOLEBODY = str(Path(__file__).resolve().parents[1] / "learning" / "weights" / "landing_samples_wholebody.json")
+LIBRARY = str(Path(__file__).resolve().parents[1] / "learning" / "weights" / "landing_samples_library.json")
+SAMPLES = {"spine": "", "wholebody": WHOLEBODY, "library": LIBRARY}
 FULL = {"population": 16, "exp1_generations": 30, "generations_simple": 15, "generations_complex": 10}
 QUICK = {"population": 4, "exp1_generations": 2, "generations_simple": 1, "generations_complex": 1}
 
@@ -93,11 +98,13 @@ def nearest_samples(samples, targets) -> tuple[int, ...]:
 def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_address: str | None = None,
           samples_file: str = "") -> dict:
     """``samples_file`` "" : the paper's spine-only samples (7 orientations); else a samples file whose 7
-    samples nearest the paper's orientations (`nearest_samples`) are trained on."""
+    samples nearest the paper's orientations (`nearest_samples`) are trained on, or, if it holds exactly 7, those
+    in order (sample k stands in for orientation k)."""
     spine = load_samples(DEFAULT_SAMPLES)
     if samples_file:
         samples = load_samples(samples_file)
-        idx = nearest_samples(samples, [s.orientation for s in spine])
+        idx = (tuple(range(len(spine))) if len(samples) == len(spine)
+               else nearest_samples(samples, [s.orientation for s in spine]))
     else:
         samples, idx = spine, tuple(range(len(spine)))
     chosen = [samples[i] for i in idx]
@@ -171,15 +178,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, help="processes (default: every core)")
     ap.add_argument("--ray-address", help="train on Ray: 'local', 'auto' or a cluster address (results identical)")
     ap.add_argument("--quick", action="store_true", help="a tiny budget: a smoke run, not a measurement")
-    ap.add_argument("--samples", choices=("spine", "wholebody"), default="spine",
-                    help="the motion samples: the paper's spine-only ones (default) or the whole-body ones "
-                    "(learning/weights/landing_samples_wholebody.json; the 7 nearest the paper's orientations)")
+    ap.add_argument("--samples", choices=tuple(SAMPLES), default="spine",
+                    help="the motion samples: the paper's spine-only ones (default), the whole-body ones "
+                    "(learning/weights/landing_samples_wholebody.json; the 7 nearest the paper's orientations) or "
+                    "the motion library's landing motions nearest them (landing_samples_library.json)")
     args = ap.parse_args(argv)
     budget = QUICK if args.quick else FULL
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="felis-landing-study-") as tmp:
         res = study(args.seeds, budget, args.workers, Path(tmp), args.ray_address,
-                    WHOLEBODY if args.samples == "wholebody" else "")
+                    SAMPLES[args.samples])
     res["seconds"] = round(time.perf_counter() - t0, 1)
     print(table(res))
     print(f"({res['seconds']} s)")

@@ -57,7 +57,8 @@ def register_train(train_sub) -> None:
     t.add_argument("--general-max-tilt", type=float, default=d.general_max_tilt_deg, metavar="DEG",
                    help="that stage draws only drops tilted at most this far from upright (default "
                    f"{d.general_max_tilt_deg:g}: any)")
-    t.add_argument("--samples", type=Path, metavar="FILE", help="motion samples (default: the shipped ones)")
+    t.add_argument("--samples", type=Path, metavar="FILE", help="motion samples (default: the shipped ones), or a "
+                   "motion library: its landing motions nearest the 7 orientations")
     t.add_argument("--workers", type=int, help="local processes (default: every core)")
     t.add_argument("--ray-address", metavar="ADDRESS|auto|local",
                    help="run rollouts on a Ray cluster (needs felis[cluster]); local starts one here")

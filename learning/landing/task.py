@@ -256,8 +256,17 @@ def run_rollout(sim, task: Task, policy, k: int | tuple) -> Rollout:
 
 
 def load_task_samples(cfg: TrainConfig, samples: Sequence[Any] | None) -> list[Any]:
+    """``samples`` as given, else the samples file ``cfg.samples`` (default `DEFAULT_SAMPLES`); a motion library
+    file gives its landing motions nearest the paper's 7 orientations, recorded now
+    (`felis.learning.landing.wholebody.library_samples`)."""
     if samples is not None:
         return list(samples)
+    from felis.learning.landing.library import is_library_file
+
+    if cfg.samples and is_library_file(cfg.samples):
+        from felis.learning.landing.wholebody import library_samples
+
+        return library_samples(cfg.samples)[0]
     return list(load_samples(cfg.samples or DEFAULT_SAMPLES))
 
 

@@ -16,6 +16,19 @@ pitch = atan2(u_x, u_z). Yaw turns only the heading, which a fall does not feel.
 
     python -c "from felis.learning.landing.wholebody import make_wholebody_samples; \\
     make_wholebody_samples('learning/weights/landing_samples_wholebody.json')"
+
+**Samples that land, from the motion library** (`library_samples`). Of those 24 samples only the ones within
+73° of upright land, and none near the paper's 7 orientations (tilted 90–180°). The shipped motion library
+(`felis.learning.landing.library`) holds, on its 3 m shelf, hundreds of motions that land their own attitude (and,
+mirrored, the mirror attitude), tilted up to 100°, and two tilted 120° and 122.5° (the hard drops). For each
+target orientation in turn (default the paper's `TRAINING_ORIENTATIONS`) the sample is the landing candidate
+whose start up-axis is nearest the target's (each used once), dropped from its own attitude and recorded; so
+the samples keep the targets' order and indices (orientation 1 and 4 of experiment 1 are samples 0 and 3) and
+every one of them lands. ``felis train landing --samples LIBRARY.json`` makes them on the fly (seven 2 s
+rollouts); the shipped file::
+
+    python -c "from felis.learning.landing.wholebody import make_library_samples; \\
+    make_library_samples('learning/weights/landing_samples_library.json')"
 """
 
 from __future__ import annotations
@@ -44,9 +57,12 @@ from felis.learning.landing.samples import (
 from felis.scenarios.drop import Drop
 
 N_ORIENTATIONS = 24
+PICK_BATCH = 16  # candidates tried at once by `library_picks`
 DEFAULT_PATH = Path(__file__).parents[1] / "weights" / "landing_samples_wholebody.json"
 COMMAND = ("python -c \"from felis.learning.landing.wholebody import make_wholebody_samples; "
            "make_wholebody_samples('learning/weights/landing_samples_wholebody.json')\"")
+LIBRARY_COMMAND = ("python -c \"from felis.learning.landing.wholebody import make_library_samples; "
+                   "make_library_samples('learning/weights/landing_samples_library.json')\"")
 
 
 def sphere_orientations(n: int = N_ORIENTATIONS) -> list[tuple[float, float, float]]:
@@ -108,3 +124,127 @@ def make_wholebody_samples(out_json: str | Path = DEFAULT_PATH, seed: int = 0, n
     write_atomic(npz, lambda f: np.savez_compressed(f, **arrays), "landing samples", ParameterError)
     write_atomic(out_json, json.dumps(doc, indent=1) + "\n", "landing samples", ParameterError)
     return samples
+
+
+# ------------------------------------------------------------------------------------------ from the library
+
+
+def _up(o) -> np.ndarray:
+    from felis.learning.landing.library import up_axis
+
+    return up_axis(math.radians(float(o[0])), math.radians(float(o[1])))
+
+
+def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, sim=None) -> list[dict]:
+    """For each target (roll, pitch, yaw °; default `TRAINING_ORIENTATIONS`), the library candidate (an entry of
+    the shelf for ``height_m``, or its mirror image) that starts nearest the target by up-axis and lands its own
+    attitude, each used once (module doc): ``{"target", "orientation", "x", "entry", "mirrored", "angle_deg"}``.
+    Whether a candidate lands is tried here (`felis.learning.landing.optimum.evaluate`, nearest first, a batch
+    of `PICK_BATCH` at a time), not read from the file's flags. ``library``: a `MotionLibrary` or a library file;
+    ``sim``: a `BatchLandingSim` to reuse."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.library import MotionLibrary, angles_deg, load_library
+    from felis.learning.landing.optimum import evaluate
+    from felis.learning.landing.samples import TRAINING_ORIENTATIONS
+
+    lib = library if isinstance(library, MotionLibrary) else load_library(library)
+    shelf = lib.shelf(height_m)
+    if abs(shelf.height_m - float(height_m)) > 1e-6:
+        raise ParameterError(f"motion library: no shelf for {height_m:g} m "
+                             f"(it has {', '.join(f'{h:g}' for h in lib.heights)} m)")
+    if not shelf.drops:
+        raise ParameterError(f"motion library: the {height_m:g} m shelf does not record its entries' drops")
+    cand_up, cand_x, _ = shelf.candidates()
+
+    def drop_of(c: int) -> Drop:
+        d = shelf.drops[c // 2]
+        roll, pitch, yaw = (float(d[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg"))
+        return Drop(0.0 - roll, pitch, 0.0 - yaw, float(height_m)) if c & 1 else Drop(roll, pitch, yaw, float(height_m))
+
+    own = sim is None
+    sim = sim or BatchLandingSim()
+    used: set[int] = set()
+    out: list[dict] = []
+    try:
+        for t in (TRAINING_ORIENTATIONS if targets is None else targets):
+            a = angles_deg(_up(t), cand_up)
+            order = [int(c) for c in np.argsort(a, kind="stable") if int(c) not in used]
+            pick = None
+            for k in range(0, len(order), PICK_BATCH):
+                part = order[k:k + PICK_BATCH]
+                res = evaluate(sim, [drop_of(c) for c in part], cand_x[part])
+                pick = next((c for c, (_, v) in zip(part, res, strict=True) if v.landed), None)
+                if pick is not None:
+                    break
+            if pick is None:
+                raise ParameterError(f"motion library: no motion of the {height_m:g} m shelf lands its own attitude "
+                                     f"for target {tuple(t)}")
+            used.add(pick)
+            d = drop_of(pick)
+            out.append({"target": tuple(map(float, t)), "orientation": (d.roll_deg, d.pitch_deg, d.yaw_deg),
+                        "x": cand_x[pick], "entry": pick // 2, "mirrored": bool(pick & 1),
+                        "angle_deg": float(a[pick])})
+    finally:
+        if own:
+            sim.close()
+    return out
+
+
+def library_samples(library, height_m: float = TRAIN_HEIGHT_M, targets=None
+                    ) -> tuple[list[Sample], list[dict]]:
+    """(the samples, their picks) of `library_picks`, each dropped from its own attitude and recorded for `STEPS`
+    ticks (`felis.learning.landing.samples.rollout`)."""
+    from felis.learning.landing.evaluate import LandingSim
+
+    picks = library_picks(library, height_m, targets)
+    sim = LandingSim()
+    samples = []
+    try:
+        for p in picks:
+            rule = MotionRule(p["x"], float(height_m), STEPS)
+            r = rollout(sim, p["orientation"], rule, float(height_m), STEPS)
+            samples.append(Sample(r.orientation, r.height_m, rule, r.vectors, r.heights_mm, r.final_up_z, r.landed,
+                                  r.up_z, None, air_up_z(r)))
+            p["rollout"] = r
+    finally:
+        sim.close()
+    return samples, picks
+
+
+def make_library_samples(out_json: str | Path, library: str | Path | None = None, height_m: float = TRAIN_HEIGHT_M,
+                         progress: Callable[[str], None] | None = None) -> list[Sample]:
+    """`library_samples` for the paper's 7 orientations, written as a samples file (.json and .npz,
+    `load_samples`'s format)."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY
+
+    out_json = Path(out_json)
+    library = Path(library or DEFAULT_LIBRARY)
+    t0 = time.perf_counter()
+    samples, picks = library_samples(library, height_m)
+    entries = []
+    for s, p in zip(samples, picks, strict=True):
+        r = p["rollout"]
+        entries.append({"orientation": list(s.orientation), "height_m": s.height_m, "rule": s.rule.as_dict(),
+                        "stands_in_for": list(p["target"]), "angle_to_target_deg": round(p["angle_deg"], 2),
+                        "library_entry": p["entry"], "mirrored": p["mirrored"], "air_up_z": s.air_up_z,
+                        "final_up_z": s.final_up_z, "final_tilt_deg": round(math.degrees(math.acos(max(-1.0, min(
+                            1.0, s.final_up_z)))), 2), "landed": s.landed, "outcome": r.outcome.as_dict()})
+        if progress:
+            progress(f"{p['target']} -> {s.orientation} ({p['angle_deg']:.1f}° away): landed {s.landed}")
+    npz = out_json.with_suffix(".npz")
+    doc = {"format": FORMAT, "version": VERSION, "kind": "whole-body", "command": LIBRARY_COMMAND,
+           "source": f"the motion library {library.name}: per target the landing motion nearest by up-axis "
+           "(learning/landing/wholebody.py, library_samples)", "library_made_by": _library_meta(library),
+           "train_height_m": float(height_m), "steps": STEPS, "dt": DT, "arrays": npz.name,
+           "wall_s": round(time.perf_counter() - t0, 1), "samples": entries}
+    arrays = {"vectors": np.stack([s.vectors for s in samples]),
+              "heights_mm": np.stack([s.heights_mm for s in samples]), "up_z": np.stack([s.up_z for s in samples])}
+    write_atomic(npz, lambda f: np.savez_compressed(f, **arrays), "landing samples", ParameterError)
+    write_atomic(out_json, json.dumps(doc, indent=1) + "\n", "landing samples", ParameterError)
+    return samples
+
+
+def _library_meta(library: Path) -> str:
+    from felis.learning.landing.library import load_library
+
+    return str(load_library(library).meta.get("made_by", ""))

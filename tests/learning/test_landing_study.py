@@ -14,18 +14,22 @@ def bench():
     return load_bench("landing_study")
 
 
-# The paper's spine samples (the bench's default) run in `make test-slow`: the study's code is the same for both
-# sample sets, and the training tests load the spine samples already.
-@pytest.mark.parametrize("samples", [pytest.param("spine", marks=pytest.mark.slow), "wholebody"])
+# The paper's spine samples (the bench's default) and the 24 whole-body ones run in `make test-slow`: the study's
+# code is the same for every sample set but the choice of the 7, and the training tests load the spine samples.
+@pytest.mark.parametrize("samples", [pytest.param("spine", marks=pytest.mark.slow),
+                                     pytest.param("wholebody", marks=pytest.mark.slow), "library"])
 def test_tiny_study_has_every_experiment_and_baseline(bench, tmp_path, samples):
-    res = bench.study([5], TINY, workers=1, tmp=tmp_path, samples_file="" if samples == "spine" else bench.WHOLEBODY)
+    res = bench.study([5], TINY, workers=1, tmp=tmp_path, samples_file=bench.SAMPLES[samples])
     row = res["seeds"]["5"]
-    if samples == "wholebody":  # the 7 whole-body samples nearest the paper's 7 orientations stand in for them
+    if samples != "spine":
         from felis.learning.landing.samples import load_samples
 
-        wb = load_samples(bench.WHOLEBODY)
-        assert len(res["training"]) == 7 and all(list(map(float, wb[i].orientation)) in res["training"]
-                                                 for i in bench.nearest_samples(wb, [(180, 0, 0)]))
+        got = load_samples(bench.SAMPLES[samples])
+        if samples == "wholebody":  # the 7 whole-body samples nearest the paper's 7 orientations stand in for them
+            assert len(res["training"]) == 7 and all(list(map(float, got[i].orientation)) in res["training"]
+                                                     for i in bench.nearest_samples(got, [(180, 0, 0)]))
+        else:  # 7 samples that land stand in order
+            assert res["training"] == [list(map(float, s.orientation)) for s in got] and all(s.landed for s in got)
     for name in ("f", "f+similarity"):  # experiment 1: orientations 1 and 4, generations or None (never)
         first = row[f"exp1 {name}"]["first_landed"]
         assert len(first) == 2 and all(g is None or g == 1 for g in first)

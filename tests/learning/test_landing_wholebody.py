@@ -43,3 +43,61 @@ def test_make_and_load_wholebody_samples(tmp_path):
         assert np.array_equal(a.vectors, b.vectors) and b.vectors.shape[0] == STEPS
     doc = json.loads(out.read_text())
     assert doc["kind"] == "whole-body" and "make_wholebody_samples" in doc["command"]
+
+
+def test_library_samples_are_landing_motions_nearest_the_papers_orientations_in_order(tmp_path):
+    """`make_library_samples` on the shipped library: 7 samples in the paper's order, each a motion that lands
+    its own start, each the nearest such start to its orientation by up-axis among those not taken before it; the
+    file reads back as samples, is the shipped one (made by the command it records), and `felis train landing
+    --samples LIBRARY` trains on the same motions."""
+    from felis.learning.landing.config import TrainConfig
+    from felis.learning.landing.library import DEFAULT_LIBRARY, angles_deg, load_library
+    from felis.learning.landing.samples import TRAINING_ORIENTATIONS
+    from felis.learning.landing.task import load_task_samples
+    from felis.learning.landing.wholebody import LIBRARY_COMMAND, _up, make_library_samples
+
+    out = tmp_path / "lib_samples.json"
+    made = make_library_samples(out)
+    doc = json.loads(out.read_text())
+    assert len(made) == 7 and all(s.landed for s in made) and doc["command"] == LIBRARY_COMMAND
+    got = load_samples(out)
+    for s, g, e, t in zip(made, got, doc["samples"], TRAINING_ORIENTATIONS, strict=True):
+        assert tuple(e["stands_in_for"]) == t and g.orientation == s.orientation and g.landed
+        assert np.allclose(g.vectors, s.vectors)
+        assert e["angle_to_target_deg"] == pytest.approx(float(angles_deg(_up(t), _up(s.orientation)[None])[0]),
+                                                         abs=0.01)
+    # orientation 6's stand-in (52° away): no motion not taken before it starts nearer and lands its own start
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.optimum import evaluate
+    from felis.scenarios.drop import Drop
+
+    shelf = load_library().shelf(3.0)
+    cand_up, cand_x, _ = shelf.candidates()
+    taken = {2 * e["library_entry"] + e["mirrored"] for e in doc["samples"][:5]}
+    a = angles_deg(_up(TRAINING_ORIENTATIONS[5]), cand_up)
+    nearer = [c for c in np.flatnonzero(a < doc["samples"][5]["angle_to_target_deg"] - 0.01) if c not in taken]
+    drops = []
+    for c in nearer:
+        d = shelf.drops[c // 2]
+        sign = -1.0 if c & 1 else 1.0
+        drops.append(Drop(sign * d["roll_deg"], d["pitch_deg"], sign * d["yaw_deg"], 3.0))
+    sim = BatchLandingSim(nthread=1)
+    try:
+        assert len(nearer) >= 10 and not any(v.landed for _, v in evaluate(sim, drops, cand_x[nearer]))
+    finally:
+        sim.close()
+    shipped = load_samples(DEFAULT_LIBRARY.parent / "landing_samples_library.json")
+    assert [s.orientation for s in shipped] == [s.orientation for s in made]
+    assert all(np.allclose(a.rule.x, b.rule.x, atol=1e-6) for a, b in zip(shipped, made, strict=True))
+    task = load_task_samples(TrainConfig(samples=str(DEFAULT_LIBRARY)), None)
+    assert [s.orientation for s in task] == [s.orientation for s in made]
+
+
+def test_library_samples_refuse_a_library_without_that_height_in_one_line():
+    from felis.learning.landing.library import MotionLibrary, load_library
+    from felis.learning.landing.wholebody import library_picks
+
+    lib = load_library()
+    one = MotionLibrary([lib.shelf(1.0)], lib.radius_deg, lib.sigma_deg)
+    with pytest.raises(ParameterError, match=r"^motion library: no shelf for 3 m \(it has 1 m\)$"):
+        library_picks(one, 3.0)
