@@ -111,6 +111,9 @@ def register_train(train_sub) -> None:
     b.add_argument("--add-probes", type=int, metavar="N",
                    help="no search: add the probes of an N-point Fibonacci sphere to the --heights shelves of --base, "
                    "each tried with the motions within --probe-radius of it (a denser grid for a narrower vote)")
+    b.add_argument("--recheck", action="store_true",
+                   help="no search: try every entry of the --heights shelves of --base on its own attitude again and "
+                   "record whether it lands (libraries built before robustify's fix carry wrong flags)")
     b.add_argument("--probe-radius", type=float, default=30.0, metavar="DEG",
                    help="--add-probes: try the motions within this angle of each new probe (default 30)")
     b.add_argument("--sigma", type=float, metavar="DEG",
@@ -242,8 +245,11 @@ def cmd_train_library(args) -> int:
                              f"and {args.fill_rounds}")
     check_target(out, "landing motion library", ParameterError)
     command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    if sum(x is not None and x != [] for x in (args.add, args.add_probes, args.join)) > 1:
-        raise ParameterError("--add, --add-probes and --join: one at a time")
+    if sum(x is not None and x != [] and x is not False for x in (args.add, args.add_probes, args.join,
+                                                                  args.recheck)) > 1:
+        raise ParameterError("--add, --add-probes, --join and --recheck: one at a time")
+    if args.recheck:
+        return _recheck_library(args, out, command)
     if args.join is not None:
         return _join_libraries(args, out, command)
     if args.add:
@@ -338,6 +344,21 @@ def _join_libraries(args, out: Path, command: str) -> int:
         print(f"{a['height_m']:g} m: {a['entries']} entries joined from {args.join}, {len(s.up)} in all; "
               f"{int(s.lands.any(axis=1).sum())} of {len(s.probe_up)} probes landed by some motion"
               + (f"; vote σ {a['sigma_deg']:g}°" if "sigma_deg" in a else ""))
+    print(f"library: {out} (from {base})")
+    return 0
+
+
+def _recheck_library(args, out: Path, command: str) -> int:
+    """``felis train landing-library --recheck [--heights H…] [--base LIBRARY]``: `recheck_entries`."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
+    from felis.learning.landing.library_build import recheck_entries
+
+    base = args.base or DEFAULT_LIBRARY
+    lib = recheck_entries(load_library(base), args.heights, workers=args.workers, command=command)
+    _write_library(out, lib)
+    for a in lib.meta["rechecked"][-len(args.heights):]:
+        print(f"{a['height_m']:g} m: {a['landed']} of {a['entries']} entries land their own attitude "
+              f"({a['was_landed']} flagged before; {a['changed']} flags changed)")
     print(f"library: {out} (from {base})")
     return 0
 

@@ -390,6 +390,37 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     return _extended(lib, shelves, "probes_added", added, command)
 
 
+def recheck_entries(lib: MotionLibrary, heights: Sequence[float], *, workers: int | None = None,
+                    command: str = "") -> MotionLibrary:
+    """``lib`` with each entry of the shelves of ``heights`` tried again on its own drop (its recorded drop, else
+    its attitude with yaw 0) and its ``landed`` set to what it does: what a start that no probe votes for falls
+    back on, and what `felis.learning.landing.wholebody` picks samples by. Libraries built before `robustify`
+    judged each entry on its own attitudes carry twins and fills flagged for another attitude. The probes'
+    verdicts are kept; the meta records the recheck (``rechecked``) and the command."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.optimum import evaluate
+
+    shelves = {s.height_m: s for s in lib.shelves}
+    done = []
+    sim = BatchLandingSim(nthread=workers)
+    try:
+        for h in heights:
+            shelf = _shelf_at(shelves.values(), h)
+            if shelf is None:
+                raise ParameterError(f"--heights {h:g}: the library has shelves at "
+                                     f"{', '.join(f'{s:g}' for s in shelves)} m only")
+            drops = ([Drop(*(float(d[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg")), shelf.height_m)
+                      for d in shelf.drops] if shelf.drops else [up_drop(u, shelf.height_m) for u in shelf.up])
+            landed = np.array([v.landed for _, v in evaluate(sim, drops, shelf.x)], dtype=bool)
+            shelves[shelf.height_m] = Shelf(shelf.height_m, shelf.up, shelf.x, landed, shelf.probe_up, shelf.lands,
+                                            shelf.drops, shelf.sigma_deg)
+            done.append({"height_m": shelf.height_m, "entries": len(landed), "landed": int(landed.sum()),
+                         "was_landed": int(shelf.landed.sum()), "changed": int((landed != shelf.landed).sum())})
+    finally:
+        sim.close()
+    return _extended(lib, shelves, "rechecked", done, command)
+
+
 def replace_shelves(base: MotionLibrary, built: MotionLibrary, command: str = "") -> MotionLibrary:
     """``base`` with ``built``'s shelves in place of those of the same heights (a height ``base`` lacks is added):
     one shelf rebuilt, say with another search, the others kept. ``base``'s vote (radius, σ) is kept; the

@@ -452,3 +452,29 @@ def test_the_shipped_library_lands_what_the_docs_say_on_random_100(height, want)
         assert r.returncode == 0, r.stderr
         got = json.loads(r.stdout)["landed"]
         assert abs(got - n) <= 1, f"{height:g} m seed {seed}: {got} landed, the docs say {n}"
+
+
+def test_recheck_sets_each_entrys_flag_to_whether_it_lands_its_own_attitude(tmp_path):
+    """``--recheck`` tries every entry of a shelf on its own drop again and keeps the probes' verdicts; entry 72 of
+    the shipped 1 m shelf, a twin searched (before robustify's fix) on another entry's attitudes, does not land
+    its own, entry 0 does."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.optimum import evaluate
+
+    out = tmp_path / "rechecked.json"
+    r = _felis("train", "landing-library", "--recheck", "--heights", "1", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    before, after = load_library().shelf(1.0), load_library(out).shelf(1.0)
+    assert np.array_equal(before.lands, after.lands) and np.array_equal(before.x, after.x)
+    sim = BatchLandingSim(nthread=1)
+    try:
+        rows = [0, 72, 160, 300]
+        drops = [Drop(*(after.drops[i][k] for k in ("roll_deg", "pitch_deg", "yaw_deg")), 1.0) for i in rows]
+        now = [v.landed for _, v in evaluate(sim, drops, after.x[rows])]
+    finally:
+        sim.close()
+    assert now == after.landed[rows].tolist() and now[:2] == [True, False]
+    changed = int((before.landed != after.landed).sum())
+    assert f"1 m: {int(after.landed.sum())} of {len(after.landed)} entries land their own attitude" in r.stdout
+    assert f"{changed} flags changed" in r.stdout and load_library(out).meta["rechecked"][-1]["changed"] == changed
+    assert load_library(out).shelf(3.0).landed.tolist() == load_library().shelf(3.0).landed.tolist()
