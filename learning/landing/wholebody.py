@@ -119,11 +119,18 @@ def make_wholebody_samples(out_json: str | Path = DEFAULT_PATH, seed: int = 0, n
            "train_height_m": TRAIN_HEIGHT_M, "steps": STEPS, "dt": DT, "objective": "optimum.score (3*landed + "
            "0.5*feet only + (1 - tilt at touchdown/180) + (1 - tilt 0.5 s later/180))", "arrays": npz.name,
            "wall_s": round(time.perf_counter() - t0, 1), "samples": entries}
+    _write_samples(out_json, doc, samples)
+    return samples
+
+
+def _write_samples(out_json: Path, doc: dict, samples: list[Sample]) -> None:
+    """The samples file: ``doc`` as JSON and the recorded arrays beside it (``doc["arrays"]``), `load_samples`'s
+    format."""
     arrays = {"vectors": np.stack([s.vectors for s in samples]),
               "heights_mm": np.stack([s.heights_mm for s in samples]), "up_z": np.stack([s.up_z for s in samples])}
-    write_atomic(npz, lambda f: np.savez_compressed(f, **arrays), "landing samples", ParameterError)
+    write_atomic(out_json.with_name(doc["arrays"]), lambda f: np.savez_compressed(f, **arrays), "landing samples",
+                 ParameterError)
     write_atomic(out_json, json.dumps(doc, indent=1) + "\n", "landing samples", ParameterError)
-    return samples
 
 
 # ------------------------------------------------------------------------------------------ from the library
@@ -237,10 +244,7 @@ def make_library_samples(out_json: str | Path, library: str | Path | None = None
            "(learning/landing/wholebody.py, library_samples)", "library_made_by": _library_meta(library),
            "train_height_m": float(height_m), "steps": STEPS, "dt": DT, "arrays": npz.name,
            "wall_s": round(time.perf_counter() - t0, 1), "samples": entries}
-    arrays = {"vectors": np.stack([s.vectors for s in samples]),
-              "heights_mm": np.stack([s.heights_mm for s in samples]), "up_z": np.stack([s.up_z for s in samples])}
-    write_atomic(npz, lambda f: np.savez_compressed(f, **arrays), "landing samples", ParameterError)
-    write_atomic(out_json, json.dumps(doc, indent=1) + "\n", "landing samples", ParameterError)
+    _write_samples(out_json, doc, samples)
     return samples
 
 
