@@ -394,7 +394,7 @@ def recheck_entries(lib: MotionLibrary, heights: Sequence[float], *, workers: in
                     command: str = "") -> MotionLibrary:
     """``lib`` with each entry of the shelves of ``heights`` tried again on its own drop (its recorded drop, else
     its attitude with yaw 0) and its ``landed`` set to what it does: what a start that no probe votes for falls
-    back on, and what `felis.learning.landing.wholebody` picks samples by. Libraries built before `robustify`
+    back on. Libraries built before `robustify`
     judged each entry on its own attitudes carry twins and fills flagged for another attitude. The probes'
     verdicts are kept; the meta records the recheck (``rechecked``) and the command."""
     from felis.learning.landing.evaluate import BatchLandingSim

@@ -222,12 +222,13 @@ def make_library_samples(out_json: str | Path, library: str | Path | None = None
                          progress: Callable[[str], None] | None = None) -> list[Sample]:
     """`library_samples` for the paper's 7 orientations, written as a samples file (.json and .npz,
     `load_samples`'s format)."""
-    from felis.learning.landing.library import DEFAULT_LIBRARY
+    from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
 
     out_json = Path(out_json)
     library = Path(library or DEFAULT_LIBRARY)
+    lib = load_library(library)
     t0 = time.perf_counter()
-    samples, picks = library_samples(library, height_m)
+    samples, picks = library_samples(lib, height_m)
     entries = []
     for s, p in zip(samples, picks, strict=True):
         r = p["rollout"]
@@ -241,14 +242,8 @@ def make_library_samples(out_json: str | Path, library: str | Path | None = None
     npz = out_json.with_suffix(".npz")
     doc = {"format": FORMAT, "version": VERSION, "kind": "whole-body", "command": LIBRARY_COMMAND,
            "source": f"the motion library {library.name}: per target the landing motion nearest by up-axis "
-           "(learning/landing/wholebody.py, library_samples)", "library_made_by": _library_meta(library),
+           "(learning/landing/wholebody.py, library_samples)", "library_made_by": lib.meta.get("made_by", ""),
            "train_height_m": float(height_m), "steps": STEPS, "dt": DT, "arrays": npz.name,
            "wall_s": round(time.perf_counter() - t0, 1), "samples": entries}
     _write_samples(out_json, doc, samples)
     return samples
-
-
-def _library_meta(library: Path) -> str:
-    from felis.learning.landing.library import load_library
-
-    return str(load_library(library).meta.get("made_by", ""))
