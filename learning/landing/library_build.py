@@ -390,6 +390,20 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     return _extended(lib, shelves, "probes_added", added, command)
 
 
+def candidate_drop(shelf: Shelf, c: int) -> Drop:
+    """The start candidate ``c`` (2·entry + 1 if mirrored) was made for: its entry's recorded drop (else the entry's
+    attitude with yaw 0), mirrored (roll and yaw negated) for a mirror image."""
+    if shelf.drops:
+        d = shelf.drops[c // 2]
+        roll, pitch, yaw = (float(d[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg"))
+    else:
+        e = up_drop(shelf.up[c // 2], shelf.height_m)
+        roll, pitch, yaw = e.roll_deg, e.pitch_deg, e.yaw_deg
+    if c & 1:
+        roll, yaw = 0.0 - roll, 0.0 - yaw
+    return Drop(roll, pitch, yaw, shelf.height_m)
+
+
 def recheck_entries(lib: MotionLibrary, heights: Sequence[float], *, workers: int | None = None,
                     command: str = "") -> MotionLibrary:
     """``lib`` with each entry of the shelves of ``heights`` tried again on its own drop (its recorded drop, else
@@ -409,8 +423,7 @@ def recheck_entries(lib: MotionLibrary, heights: Sequence[float], *, workers: in
             if shelf is None:
                 raise ParameterError(f"--heights {h:g}: the library has shelves at "
                                      f"{', '.join(f'{s:g}' for s in shelves)} m only")
-            drops = ([Drop(*(float(d[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg")), shelf.height_m)
-                      for d in shelf.drops] if shelf.drops else [up_drop(u, shelf.height_m) for u in shelf.up])
+            drops = [candidate_drop(shelf, 2 * i) for i in range(len(shelf.up))]
             landed = np.array([v.landed for _, v in evaluate(sim, drops, shelf.x)], dtype=bool)
             shelves[shelf.height_m] = Shelf(shelf.height_m, shelf.up, shelf.x, landed, shelf.probe_up, shelf.lands,
                                             shelf.drops, shelf.sigma_deg)

@@ -142,15 +142,16 @@ def _up(o) -> np.ndarray:
     return up_axis(math.radians(float(o[0])), math.radians(float(o[1])))
 
 
-def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, sim=None) -> list[dict]:
+def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None) -> list[dict]:
     """For each target (roll, pitch, yaw °; default `TRAINING_ORIENTATIONS`), the library candidate (an entry of
     the shelf for ``height_m``, or its mirror image) that starts nearest the target by up-axis and lands its own
     attitude, each used once (module doc): ``{"target", "orientation", "x", "entry", "mirrored", "angle_deg"}``.
     Whether a candidate lands is tried here (`felis.learning.landing.optimum.evaluate`, nearest first, a batch
-    of `PICK_BATCH` at a time), not read from the file's flags. ``library``: a `MotionLibrary` or a library file;
-    ``sim``: a `BatchLandingSim` to reuse."""
+    of `PICK_BATCH` at a time), not read from the file's flags. ``library``: a `MotionLibrary` or a library
+    file."""
     from felis.learning.landing.evaluate import BatchLandingSim
     from felis.learning.landing.library import MotionLibrary, angles_deg, load_library
+    from felis.learning.landing.library_build import candidate_drop
     from felis.learning.landing.optimum import evaluate
     from felis.learning.landing.samples import TRAINING_ORIENTATIONS
 
@@ -162,14 +163,7 @@ def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, sim=N
     if not shelf.drops:
         raise ParameterError(f"motion library: the {height_m:g} m shelf does not record its entries' drops")
     cand_up, cand_x, _ = shelf.candidates()
-
-    def drop_of(c: int) -> Drop:
-        d = shelf.drops[c // 2]
-        roll, pitch, yaw = (float(d[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg"))
-        return Drop(0.0 - roll, pitch, 0.0 - yaw, float(height_m)) if c & 1 else Drop(roll, pitch, yaw, float(height_m))
-
-    own = sim is None
-    sim = sim or BatchLandingSim()
+    sim = BatchLandingSim()
     used: set[int] = set()
     out: list[dict] = []
     try:
@@ -179,7 +173,7 @@ def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, sim=N
             pick = None
             for k in range(0, len(order), PICK_BATCH):
                 part = order[k:k + PICK_BATCH]
-                res = evaluate(sim, [drop_of(c) for c in part], cand_x[part])
+                res = evaluate(sim, [candidate_drop(shelf, c) for c in part], cand_x[part])
                 pick = next((c for c, (_, v) in zip(part, res, strict=True) if v.landed), None)
                 if pick is not None:
                     break
@@ -187,13 +181,12 @@ def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, sim=N
                 raise ParameterError(f"motion library: no motion of the {height_m:g} m shelf lands its own attitude "
                                      f"for target {tuple(t)}")
             used.add(pick)
-            d = drop_of(pick)
+            d = candidate_drop(shelf, pick)
             out.append({"target": tuple(map(float, t)), "orientation": (d.roll_deg, d.pitch_deg, d.yaw_deg),
                         "x": cand_x[pick], "entry": pick // 2, "mirrored": bool(pick & 1),
                         "angle_deg": float(a[pick])})
     finally:
-        if own:
-            sim.close()
+        sim.close()
     return out
 
 
