@@ -114,8 +114,13 @@ def register_train(train_sub) -> None:
     b.add_argument("--recheck", action="store_true",
                    help="no search: try every entry of the --heights shelves of --base on its own attitude again and "
                    "record whether it lands (libraries built before robustify's fix carry wrong flags)")
+    b.add_argument("--extend", type=float, metavar="DEG",
+                   help="no search of the grid: take the --heights shelves of --base out to this tilt: the probes of "
+                   "the --probes sphere beyond the shelf's farthest, tried with the motions within --probe-radius, "
+                   "then --fill-rounds rounds of fills for those that no motion (or the choice) lands, each searched "
+                   "from the nearest motion that lands something (continuation from the shelf's edge)")
     b.add_argument("--probe-radius", type=float, default=30.0, metavar="DEG",
-                   help="--add-probes: try the motions within this angle of each new probe (default 30)")
+                   help="--add-probes, --extend: try the motions within this angle of each new probe (default 30)")
     b.add_argument("--sigma", type=float, metavar="DEG",
                    help="--add-probes, --join: the vote width of those shelves (default: as it was)")
     b.set_defaults(func=cmd_train_library)
@@ -246,8 +251,10 @@ def cmd_train_library(args) -> int:
     check_target(out, "landing motion library", ParameterError)
     command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     if sum(x is not None and x != [] and x is not False for x in (args.add, args.add_probes, args.join,
-                                                                  args.recheck)) > 1:
-        raise ParameterError("--add, --add-probes, --join and --recheck: one at a time")
+                                                                  args.recheck, args.extend)) > 1:
+        raise ParameterError("--add, --add-probes, --join, --recheck and --extend: one at a time")
+    if args.extend is not None:
+        return _extend_library(args, out, command)
     if args.recheck:
         return _recheck_library(args, out, command)
     if args.join is not None:
@@ -384,6 +391,34 @@ def _add_probes_to_library(args, out: Path, command: str) -> int:
         print(f"{a['height_m']:g} m: {a['probes']} probes added ({a['points']}-point sphere, motions within "
               f"{a['radius_deg']:g}°), {a['landed_by_some']} of them landed by some motion"
               + (f"; vote σ {a['sigma_deg']:g}°" if "sigma_deg" in a else ""))
+    print(f"library: {out} (from {base})")
+    return 0
+
+
+def _extend_library(args, out: Path, command: str) -> int:
+    """``felis train landing-library --extend DEG [--heights H…] [--base LIBRARY]``: `extend_shelves`."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
+    from felis.learning.landing.library_build import extend_shelves
+
+    base = args.base or DEFAULT_LIBRARY
+    lib = load_library(base)
+    workdir = args.workdir or out.with_suffix(".ckpt")
+    if args.resume and not Path(workdir).is_dir():
+        raise ParameterError(f"--resume: no checkpoints in {workdir}")
+    bar, progress = _stage_bar()
+    with bar:
+        lib = extend_shelves(lib, args.heights, args.extend, probes=args.probes, radius_deg=args.probe_radius,
+                             fill_generations=args.fill_generations, fill_rounds=args.fill_rounds, seed=args.seed,
+                             workers=args.workers, command=command, workdir=workdir, resume=args.resume,
+                             progress=progress)
+    _write_library(out, lib)
+    for a in lib.meta["extended"][-len(args.heights):]:
+        s = lib.shelf(a["height_m"])
+        fills = ", ".join(f"round {k}: {r['entries']} entries of {r['targets']} targets"
+                          for k, r in enumerate(a["fill"]["rounds"], 1))
+        print(f"{a['height_m']:g} m: {a['probes']} probes added from {a['from_deg']:.0f}° to {a['max_tilt_deg']:g}°, "
+              f"{a['landed_by_some_before']} landed by some motion before the fill, {a['landed_by_some']} after"
+              + (f" ({fills})" if fills else "") + f"; {len(s.up)} entries in all")
     print(f"library: {out} (from {base})")
     return 0
 

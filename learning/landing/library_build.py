@@ -11,7 +11,8 @@ lands, searched from the nearest candidate (`fill`, `fill_targets`), then its tr
 Checkpoints per height in ``WORKDIR/<h>m/``: ``optimum.jsonl`` (per drop), ``robust.npz``, ``probes.npy``,
 ``fill.npz`` (``fill2.npz``…); ``resume`` goes on from them. Deterministic for a seed. `replace_shelves` puts
 the shelves built into another library (``--base``: one shelf rebuilt, the others kept); `join_shelves` puts two
-libraries' motions for a height on one shelf (``--join``).
+libraries' motions for a height on one shelf (``--join``); `extend_shelves` takes a shelf beyond its maximum tilt
+by continuation from the motions at its edge (``--extend``).
 """
 
 from __future__ import annotations
@@ -161,14 +162,20 @@ def fill(sim, shelf: Shelf, targets: np.ndarray, *, generations: int = ROBUST_GE
          offset_deg: float = FILL_OFFSET_DEG, seed: int = 0,
          progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """New entries for the probes ``targets`` of ``shelf``: for each, `robustify` over the probe and four attitudes
-    ``offset_deg`` round it, from the nearest candidate (an entry or a mirror image) that lands the probe, or the
-    nearest one where none does. Returns (motions (T, 55), how many of the five each lands, whether each lands its
-    probe); the caller keeps those that land something."""
+    ``offset_deg`` round it, from the nearest candidate (an entry or a mirror image) that lands the probe, or, where
+    none does, the nearest that lands something (some probe, or its own drop; else the nearest of all): a
+    continuation from motions that work, which reaches holes far from every entry (`extend_shelves`). Returns
+    (motions (T, 55), how many of the five each lands, whether each lands its probe); the caller keeps those that
+    land something."""
     if not len(targets):
         return np.zeros((0, shelf.x.shape[1])), np.zeros(0, int), np.zeros(0, bool)
-    cand_up, cand_x, _ = shelf.candidates()
+    cand_up, cand_x, cand_landed = shelf.candidates()
+    useful = shelf.lands.any(axis=0) | cand_landed
+    if not useful.any():
+        useful[:] = True
+    mine = shelf.lands[targets]
     a = angles_deg(shelf.probe_up[targets], cand_up)
-    a = np.where(shelf.lands[targets] | ~shelf.lands[targets].any(axis=1, keepdims=True), a, np.inf)
+    a = np.where(np.where(mine.any(axis=1, keepdims=True), mine, useful[None, :]), a, np.inf)
     return robustify(sim, shelf.probe_up[targets], cand_x[np.argmin(a, axis=1)], shelf.height_m,
                      offset_deg=offset_deg, generations=generations, seed=seed, progress=progress)
 
@@ -388,6 +395,110 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     finally:
         sim.close()
     return _extended(lib, shelves, "probes_added", added, command)
+
+
+def tilts_deg(u: np.ndarray) -> np.ndarray:
+    """The tilt from upright (deg) of up axes (…, 3)."""
+    return np.degrees(np.arccos(np.clip(np.asarray(u)[..., 2], -1.0, 1.0)))
+
+
+def extend_shelves(lib: MotionLibrary, heights: Sequence[float], max_tilt_deg: float, *, probes: int = PROBES,
+                   radius_deg: float = EVAL_RADIUS_DEG, fill_generations: int = FILL_GENERATIONS,
+                   fill_rounds: int = FILL_ROUNDS, seed: int = 0, workers: int | None = None, command: str = "",
+                   workdir: str | Path | None = None, resume: bool = False,
+                   progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
+    """``lib`` whose shelves of ``heights`` reach further from upright, by continuation from the motions that land
+    at their edge (the grid's optimum, searched from scratch, lands almost nothing tilted beyond 100°;
+    docs/landing.md). Per shelf: (1) the attitudes of a ``probes``-point Fibonacci sphere tilted beyond the
+    shelf's farthest probe and at most ``max_tilt_deg`` (u_y ≥ 0) become probes, each tried with the candidates
+    within ``radius_deg``; (2) ``fill_rounds`` rounds of `fill` aimed at those new probes only: each round at the
+    new probes no candidate lands and those where the choice, their own vote left out, picks a motion that fails
+    there, each searched from the nearest candidate that lands it, else the nearest that lands something (so a
+    round starts from what the last one found, further out); the new motions that land any of their five attitudes
+    become entries and are tried on every probe within ``radius_deg``. The shelf's other results are kept.
+    Checkpoints per height in ``workdir/<h>m/``: ``extend_probes.npy``, ``extend_fill<k>.npz``,
+    ``extend_probes<k>.npy`` (``resume``). The meta records each extension (``extended``) and the command."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+
+    if probes < 1 or not 0 < radius_deg <= 180 or not 0 < max_tilt_deg <= 180:
+        raise ParameterError(f"--extend needs a maximum tilt and --probe-radius within (0, 180] degrees and --probes "
+                             f"≥ 1; got {max_tilt_deg:g}°, {radius_deg:g}°, {probes} points")
+    if fill_generations < 0 or fill_rounds < 0:
+        raise ParameterError(f"--extend needs --fill-generations and --fill-rounds ≥ 0, got {fill_generations} and "
+                             f"{fill_rounds}")
+    shelves = {s.height_m: s for s in lib.shelves}
+    targets = []
+    for h in heights:
+        shelf = _shelf_at(shelves.values(), h)
+        if shelf is None:
+            raise ParameterError(f"--heights {h:g}: the library has shelves at "
+                                 f"{', '.join(f'{s:g}' for s in shelves)} m only")
+        reach = float(tilts_deg(shelf.probe_up).max()) if len(shelf.probe_up) else 0.0
+        if max_tilt_deg <= reach + 1e-6:
+            raise ParameterError(f"--extend {max_tilt_deg:g}: the {shelf.height_m:g} m shelf's probes reach "
+                                 f"{reach:.1f}° already")
+        targets.append((shelf, reach))
+    extended = []
+    sim = BatchLandingSim(nthread=workers)
+    try:
+        for shelf, reach in targets:
+            h = shelf.height_m
+            where = None if workdir is None else Path(workdir) / f"{h:g}m"
+            if where is not None:
+                where.mkdir(parents=True, exist_ok=True)
+
+            def checkpoint(name: str, where=where):
+                ck = None if where is None else where / name
+                done = np.load(ck) if resume and ck is not None and ck.exists() else None
+                return done, None if ck is None else (lambda r, ck=ck: np.save(ck, r))
+
+            def bar(stage: str, h=h):
+                return None if progress is None else (lambda d, t: progress(f"{h:g} m {stage}", d, t))
+
+            new = fibonacci_ups(probes, max_tilt_deg)
+            new = new[tilts_deg(new) > reach + 1e-6]
+            done, save = checkpoint("extend_probes.npy")
+            new_lands = try_probes(sim, shelf.up, shelf.x, new, h, done=done, save=save, radius_deg=radius_deg,
+                                   progress=bar("new probes"))
+            before = int(new_lands.any(axis=1).sum())
+            up, x, landed = shelf.up, shelf.x, shelf.landed
+            drops = list(shelf.drops) if shelf.drops else [up_drop(v, h).as_dict() for v in shelf.up]
+            probe_up = np.concatenate([shelf.probe_up, new])
+            lands = np.concatenate([shelf.lands, new_lands])
+            mine = np.arange(len(shelf.probe_up), len(probe_up))
+            sigma = shelf.sigma_deg or lib.sigma_deg
+            rounds = []
+            for k in range(1, fill_rounds + 1) if fill_generations > 0 else ():
+                ck = None if where is None else where / f"extend_fill{k}.npz"
+                if resume and ck is not None and ck.is_file():
+                    with np.load(ck) as f:
+                        at, fx, fn, fc = f["targets"], f["x"], f["landed"], f["centre"]
+                else:
+                    cur = Shelf(h, up, x, landed, probe_up, lands, drops, shelf.sigma_deg)
+                    at = np.array([p for p in mine if not lands[p].any() or not lands[
+                        p, cur.choose(probe_up[p], lib.radius_deg, sigma, exclude=p)[1]]], dtype=int)
+                    fx, fn, fc = fill(sim, cur, at, generations=fill_generations, seed=seed + k,
+                                      progress=bar(f"fill {k}"))
+                    if ck is not None:
+                        np.savez(ck, targets=at, x=fx, landed=fn, centre=fc)
+                keep = fn > 0
+                up = np.concatenate([up, probe_up[at[keep]]])
+                x = np.concatenate([x, fx[keep]])
+                landed = np.concatenate([landed, fc[keep]])
+                drops += [up_drop(v, h).as_dict() for v in probe_up[at[keep]]]
+                done, save = checkpoint(f"extend_probes{k}.npy")
+                lands = try_probes(sim, up, x, probe_up, h, done=lands.astype(np.int8) if done is None else done,
+                                   save=save, radius_deg=radius_deg, progress=bar("probes"))
+                rounds.append({"targets": len(at), "entries": int(keep.sum()), "land_their_probe": int(fc.sum())})
+            shelves[h] = Shelf(h, up, x, landed, probe_up, lands, drops, shelf.sigma_deg)
+            extended.append({"height_m": h, "from_deg": round(reach, 3), "max_tilt_deg": float(max_tilt_deg),
+                             "points": int(probes), "radius_deg": float(radius_deg), "probes": int(len(new)),
+                             "landed_by_some_before": before, "landed_by_some": int(lands[mine].any(axis=1).sum()),
+                             "fill": {"generations": fill_generations, "population": ROBUST_POPULATION,
+                                      "offset_deg": FILL_OFFSET_DEG, "seed": seed, "rounds": rounds}})
+    finally:
+        sim.close()
+    return _extended(lib, shelves, "extended", extended, command)
 
 
 def candidate_drop(shelf: Shelf, c: int) -> Drop:

@@ -120,6 +120,14 @@ def test_the_fill_targets_holes_first_then_the_probes_whose_neighbours_vote_for_
     finally:
         sim.close()
     assert np.array_equal(x[0], s.x[0]) and np.array_equal(x[1], s.x[1]) and n.shape == c.shape == (2,)
+    s.lands[:, 2] = False  # now entry 1 lands nothing (nor its own drop), entry 0 the probe at 13°: a hole at 40°
+    s.landed = np.array([True, False])  # starts from entry 0, which works, not from the nearer entry 1
+    sim = BatchLandingSim(nthread=1)
+    try:
+        x, _, _ = fill(sim, s, np.array([5]), generations=0)
+    finally:
+        sim.close()
+    assert np.array_equal(x[0], s.x[0])
 
 
 def test_a_library_reads_back_as_written_and_picks_the_nearer_height():
@@ -437,7 +445,7 @@ def test_add_probes_refuses_a_height_without_a_shelf_and_bad_numbers_in_one_line
                         (("--add-probes", "10", "--sigma", "0"), "--sigma must be a positive number"),
                         (("--add-probes", "0"), "points ≥ 1"),
                         (("--add-probes", "10", "--add", str(DEFAULT_LIBRARY.parent / "landing_hard_drop.json")),
-                         "--add, --add-probes, --join and --recheck: one at a time")):
+                         "--add, --add-probes, --join, --recheck and --extend: one at a time")):
         r = _felis("train", "landing-library", *argv, "--out", str(o))
         assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not o.exists()
@@ -478,3 +486,86 @@ def test_recheck_sets_each_entrys_flag_to_whether_it_lands_its_own_attitude(tmp_
     assert f"1 m: {int(after.landed.sum())} of {len(after.landed)} entries land their own attitude" in r.stdout
     assert f"{changed} flags changed" in r.stdout and load_library(out).meta["rechecked"][-1]["changed"] == changed
     assert load_library(out).shelf(3.0).landed.tolist() == load_library().shelf(3.0).landed.tolist()
+
+
+def _edge_library(tmp_path):
+    """A small 3 m library: the shipped shelf's entries tilted 75–100° that land their own drop, probed on a
+    40-point sphere up to 90°; written to a file for the CLI."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.library_build import fibonacci_ups, tilts_deg, try_probes
+
+    s = load_library().shelf(3.0)
+    rows = np.flatnonzero((tilts_deg(s.up) > 75) & (tilts_deg(s.up) <= 100) & s.landed)[:8]
+    probe_up = fibonacci_ups(40, 90.0)
+    sim = BatchLandingSim(nthread=2)
+    try:
+        lands = try_probes(sim, s.up[rows], s.x[rows], probe_up, 3.0)
+    finally:
+        sim.close()
+    lib = MotionLibrary([Shelf(3.0, s.up[rows], s.x[rows], s.landed[rows], probe_up, lands,
+                               [s.drops[i] for i in rows])], sigma_deg=3.0)
+    path = tmp_path / "edge.json"
+    path.write_text(json.dumps(lib.as_dict()))
+    return lib, path
+
+
+def test_extend_takes_a_shelf_beyond_its_farthest_probe_from_the_motions_at_its_edge_and_resumes(tmp_path):
+    """``--extend 120``: probes of the ``--probes`` sphere tilted beyond the shelf's farthest (90°) up to 120°,
+    tried with the motions within the radius; a fill round for those no motion lands, each from the nearest motion
+    that lands something; the new entries' flags are what they do on their probe; the old probes' results and
+    entries kept; a run resumed from its checkpoints writes the same library; eval runs it."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.library_build import tilts_deg, up_drop
+    from felis.learning.landing.optimum import evaluate
+
+    _, path = _edge_library(tmp_path)
+    old = load_library(path).shelf(3.0)  # as the file has it (attitudes to 6 decimals)
+    out, ck = tmp_path / "out.json", tmp_path / "ck"
+    argv = ("train", "landing-library", "--base", str(path), "--extend", "120", "--heights", "3", "--probes", "40",
+            "--fill-generations", "1", "--fill-rounds", "1", "--out", str(out), "--workdir", str(ck),
+            "--workers", "2")
+    r = _felis(*argv)
+    assert r.returncode == 0, r.stderr
+    ext = load_library(out)
+    s = ext.shelf(3.0)
+    P, E = len(old.probe_up), len(old.up)
+    new = s.probe_up[P:]
+    assert len(new) >= 3 and np.all((tilts_deg(new) > tilts_deg(old.probe_up).max()) & (tilts_deg(new) <= 120 + 1e-6))
+    assert np.all(new[:, 1] >= 0)
+    assert np.array_equal(s.probe_up[:P], old.probe_up) and np.array_equal(s.lands[:P, :2 * E], old.lands)
+    assert np.array_equal(s.x[:E], old.x) and np.array_equal(s.landed[:E], old.landed)
+    cand_up = s.candidates()[0]
+    ang = np.degrees(np.arccos(np.clip(s.probe_up @ cand_up.T, -1, 1)))
+    assert not np.any(s.lands & (ang > 30.0 + 1e-9))
+    a = ext.meta["extended"][-1]
+    assert a["probes"] == len(new) and a["from_deg"] == pytest.approx(float(tilts_deg(old.probe_up).max()), abs=1e-3)
+    rnd = a["fill"]["rounds"][0]
+    assert rnd["targets"] >= 1 and len(s.up) == E + rnd["entries"]
+    reach = float(tilts_deg(old.probe_up).max())  # the 40-point sphere's farthest within 90°
+    assert f"3 m: {len(new)} probes added from {reach:.0f}° to 120°" in r.stdout, r.stdout
+    # none of the new probes is landed by the shelf's motions; the fill (from the edge) finds one that is
+    assert a["landed_by_some_before"] == 0 and a["landed_by_some"] >= 1 and rnd["entries"] >= 1
+    assert angles_min(s.up[E:], new) < 1e-3  # each new entry sits on one of the new probes
+    sim = BatchLandingSim(nthread=2)
+    try:  # its flag is what it does there
+        now = [v.landed for _, v in evaluate(sim, [up_drop(u, 3.0) for u in s.up[E:]], s.x[E:])]
+    finally:
+        sim.close()
+    assert now == s.landed[E:].tolist() and any(now)
+    assert {p.name for p in (ck / "3m").iterdir()} == {"extend_probes.npy", "extend_fill1.npz",
+                                                       "extend_probes1.npy"}
+    out2 = tmp_path / "again.json"
+    r = _felis(*[a if a != str(out) else str(out2) for a in argv], "--resume")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out2.read_text())["shelves"] == json.loads(out.read_text())["shelves"]
+    r = _felis("train", "landing-library", "--base", str(out), "--extend", "110", "--heights", "3", "--out",
+               str(tmp_path / "no.json"))
+    assert r.returncode != 0 and len(r.stderr.splitlines()) == 1
+    assert f"the 3 m shelf's probes reach {tilts_deg(new).max():.1f}° already" in r.stderr
+    r = _felis("eval", "landing", "--drops", "random:2", "--height", "3", "--policy", str(out), "--json")
+    assert r.returncode == 0, r.stderr
+
+
+def angles_min(a: np.ndarray, b: np.ndarray) -> float:
+    """The largest, over the rows of a, of the angle (deg) to the nearest row of b."""
+    return float(np.degrees(np.arccos(np.clip(a @ b.T, -1, 1))).min(axis=1).max())
