@@ -66,24 +66,29 @@ def test_library_samples_are_landing_motions_nearest_the_papers_orientations_in_
         assert np.allclose(g.vectors, s.vectors)
         assert e["angle_to_target_deg"] == pytest.approx(float(angles_deg(_up(t), _up(s.orientation)[None])[0]),
                                                          abs=0.01)
-    # orientation 6's stand-in (52° away): no motion not taken before it starts nearer and lands its own start
+    # the stand-in with the most candidates starting nearer its orientation (not taken before it): none of those
+    # lands its own start
     from felis.learning.landing.evaluate import BatchLandingSim
     from felis.learning.landing.optimum import evaluate
     from felis.scenarios.drop import Drop
 
     shelf = load_library().shelf(3.0)
     cand_up, cand_x, _ = shelf.candidates()
-    taken = {2 * e["library_entry"] + e["mirrored"] for e in doc["samples"][:5]}
-    a = angles_deg(_up(TRAINING_ORIENTATIONS[5]), cand_up)
-    nearer = [c for c in np.flatnonzero(a < doc["samples"][5]["angle_to_target_deg"] - 0.01) if c not in taken]
+
+    def nearer(i: int) -> list[int]:
+        taken = {2 * e["library_entry"] + e["mirrored"] for e in doc["samples"][:i]}
+        a = angles_deg(_up(TRAINING_ORIENTATIONS[i]), cand_up)
+        return [c for c in np.flatnonzero(a < doc["samples"][i]["angle_to_target_deg"] - 0.01) if c not in taken]
+
+    most = max((nearer(i) for i in range(len(TRAINING_ORIENTATIONS))), key=len)
     drops = []
-    for c in nearer:
+    for c in most:
         d = shelf.drops[c // 2]
         sign = -1.0 if c & 1 else 1.0
         drops.append(Drop(sign * d["roll_deg"], d["pitch_deg"], sign * d["yaw_deg"], 3.0))
     sim = BatchLandingSim(nthread=1)
     try:
-        assert len(nearer) >= 10 and not any(v.landed for _, v in evaluate(sim, drops, cand_x[nearer]))
+        assert len(most) >= 3 and not any(v.landed for _, v in evaluate(sim, drops, cand_x[most]))
     finally:
         sim.close()
     shipped = load_samples(DEFAULT_LIBRARY.parent / "landing_samples_library.json")
