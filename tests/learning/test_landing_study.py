@@ -52,15 +52,18 @@ def test_tiny_study_has_every_experiment_and_baseline(bench, tmp_path, samples):
 
 def test_the_shipped_study_on_samples_that_land_says_what_the_docs_say():
     """docs/landing.md and the README, from `learning/weights/landing_study_library.json` (made by
-    `bench/landing_study.py --samples library`): similarity lifts the best f after 30 generations in all 6 seed ×
-    orientation pairs, and nothing lands in experiment 1, 2 or 3."""
+    `bench/landing_study.py --samples library`, on the samples of the library extended beyond 100°): similarity
+    lifts the best f after 30 generations in 3 of the 6 seed × orientation pairs, and nothing lands in experiment
+    1, 2 or 3."""
     from pathlib import Path
 
     res = json.loads((Path(__file__).parents[2] / "learning" / "weights" / "landing_study_library.json").read_text())
     assert res["samples"].endswith("landing_samples_library.json") and sorted(res["seeds"]) == ["0", "1", "2"]
     assert res["budget"]["exp1_generations"] == 30 and res["budget"]["population"] == 16
+    ahead = 0
     for row in res["seeds"].values():
         f, fs = row["exp1 f"], row["exp1 f+similarity"]
-        assert all(a[-1] > b[-1] for a, b in zip(fs["best_f"], f["best_f"], strict=True))
+        ahead += sum(a[-1] > b[-1] for a, b in zip(fs["best_f"], f["best_f"], strict=True))
         assert f["first_landed"] == fs["first_landed"] == [None, None]
         assert all(row[f"{e} {n}"]["landed"] == 0 for e in ("exp2", "exp3") for n in ("one-net", "simple-complex"))
+    assert ahead == 3
