@@ -66,13 +66,18 @@ def test_read_trace_pairs_every_instruction_with_its_status(tmp_path):
     assert got[3][5].params == got[3][5].raw[9:13]  # the four bytes of Present Position
 
 
-def test_run_on_dxl_traces_group_transfers_per_id_and_the_torque_off(tmp_path):
+def test_run_on_dxl_traces_group_transfers_per_id_and_the_torque_off(tmp_path, capsys):
     spec = load_spec("arm")
     ids = [j.servo_id for j in spec.joints]
-    with VirtualBus.for_robot(spec, baud=BAUD) as vb:
-        trace = tmp_path / "run.trace"
-        assert main(["run", "hold", "--robot", "arm", "--backend", "dxl", "--port", vb.port, "--duration", "0.2",
-                     "--trace", str(trace), "--json"]) == 0
+    trace = tmp_path / "run.trace"
+    for attempt in range(2):  # the emulated servos keep their 0.1 s Bus Watchdog on the wall clock: a host stalled
+        with VirtualBus.for_robot(spec, baud=BAUD) as vb:  # that long by a loaded CI machine trips it (the
+            rc = main(["run", "hold", "--robot", "arm", "--backend", "dxl", "--port", vb.port, "--duration",  # deadman
+                       "0.2", "--trace", str(trace), "--json"])  # working); then once more, as an operator would
+        out = capsys.readouterr().out
+        if rc == 0 or "bus watchdog" not in out or attempt:
+            break
+    assert rc == 0, out
     got = packets(trace)
     tx = [p for p in got if p[1] == "TX"]
     reads = [p for p in tx if p[3] in ("SYNC_READ", "FAST_SYNC_READ")]
