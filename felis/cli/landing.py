@@ -370,17 +370,24 @@ def _recheck_library(args, out: Path, command: str) -> int:
     return 0
 
 
-def _add_probes_to_library(args, out: Path, command: str) -> int:
-    """``felis train landing-library --add-probes N [--heights H…] [--base LIBRARY]``: `add_probes`."""
-
+def _base_and_workdir(args, out: Path):
+    """(the --base path, that library read, the checkpoint folder: --workdir or <out>.ckpt, which --resume needs)."""
     from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
-    from felis.learning.landing.library_build import add_probes
 
     base = args.base or DEFAULT_LIBRARY
     lib = load_library(base)
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
+    return base, lib, workdir
+
+
+def _add_probes_to_library(args, out: Path, command: str) -> int:
+    """``felis train landing-library --add-probes N [--heights H…] [--base LIBRARY]``: `add_probes`."""
+
+    from felis.learning.landing.library_build import add_probes
+
+    base, lib, workdir = _base_and_workdir(args, out)
     bar, progress = _stage_bar()
     with bar:
         lib = add_probes(lib, args.heights, args.add_probes, radius_deg=args.probe_radius,
@@ -397,14 +404,9 @@ def _add_probes_to_library(args, out: Path, command: str) -> int:
 
 def _extend_library(args, out: Path, command: str) -> int:
     """``felis train landing-library --extend DEG [--heights H…] [--base LIBRARY]``: `extend_shelves`."""
-    from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
     from felis.learning.landing.library_build import extend_shelves
 
-    base = args.base or DEFAULT_LIBRARY
-    lib = load_library(base)
-    workdir = args.workdir or out.with_suffix(".ckpt")
-    if args.resume and not Path(workdir).is_dir():
-        raise ParameterError(f"--resume: no checkpoints in {workdir}")
+    base, lib, workdir = _base_and_workdir(args, out)
     bar, progress = _stage_bar()
     with bar:
         lib = extend_shelves(lib, args.heights, args.extend, probes=args.probes, radius_deg=args.probe_radius,

@@ -299,6 +299,19 @@ def _shelf_at(shelves, height_m: float) -> Shelf | None:
     return next((s for s in shelves if math.isclose(s.height_m, float(height_m), rel_tol=1e-6)), None)
 
 
+def _shelves_for(lib: MotionLibrary, heights: Sequence[float]) -> tuple[dict, list[Shelf]]:
+    """``lib``'s shelves by height, and those of ``heights`` (each must exist: one line naming those there are)."""
+    shelves = {s.height_m: s for s in lib.shelves}
+    picked = []
+    for h in heights:
+        shelf = _shelf_at(shelves.values(), h)
+        if shelf is None:
+            raise ParameterError(f"--heights {h:g}: the library has shelves at "
+                                 f"{', '.join(f'{s:g}' for s in shelves)} m only")
+        picked.append(shelf)
+    return shelves, picked
+
+
 def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, str]], *, workers: int | None = None,
                 command: str = "", progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """``lib`` with more entries: each motion (x (55,), the drop it was searched for, its name), for example one
@@ -359,14 +372,7 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
         raise ParameterError(f"--add-probes needs points ≥ 1, and --probe-radius and --max-tilt within (0, 180] "
                              f"degrees; got {points} points, radius {radius_deg:g}°, maximum tilt {max_tilt_deg:g}°")
     _check_sigma(sigma_deg)
-    shelves = {s.height_m: s for s in lib.shelves}
-    targets = []
-    for h in heights:
-        shelf = _shelf_at(shelves.values(), h)
-        if shelf is None:
-            raise ParameterError(f"--heights {h:g}: the library has shelves at "
-                                 f"{', '.join(f'{s:g}' for s in shelves)} m only")
-        targets.append(shelf)
+    shelves, targets = _shelves_for(lib, heights)
     added = []
     sim = BatchLandingSim(nthread=workers)
     try:
@@ -426,13 +432,9 @@ def extend_shelves(lib: MotionLibrary, heights: Sequence[float], max_tilt_deg: f
     if fill_generations < 0 or fill_rounds < 0:
         raise ParameterError(f"--extend needs --fill-generations and --fill-rounds ≥ 0, got {fill_generations} and "
                              f"{fill_rounds}")
-    shelves = {s.height_m: s for s in lib.shelves}
+    shelves, picked = _shelves_for(lib, heights)
     targets = []
-    for h in heights:
-        shelf = _shelf_at(shelves.values(), h)
-        if shelf is None:
-            raise ParameterError(f"--heights {h:g}: the library has shelves at "
-                                 f"{', '.join(f'{s:g}' for s in shelves)} m only")
+    for shelf in picked:
         reach = float(tilts_deg(shelf.probe_up).max()) if len(shelf.probe_up) else 0.0
         if max_tilt_deg <= reach + 1e-6:
             raise ParameterError(f"--extend {max_tilt_deg:g}: the {shelf.height_m:g} m shelf's probes reach "
