@@ -39,6 +39,11 @@ FILL_ROUNDS = 2
 FILL_OFFSET_DEG = 3.0  # a hole's neighbours (the probes are ~5° apart at the default density)
 
 
+def tilts_deg(u: np.ndarray) -> np.ndarray:
+    """The tilt from upright (deg) of up axes (…, 3)."""
+    return np.degrees(np.arccos(np.clip(np.asarray(u)[..., 2], -1.0, 1.0)))
+
+
 def fibonacci_ups(n: int, max_tilt_deg: float = 180.0) -> np.ndarray:
     """Up axes (K, 3) of an ``n``-point Fibonacci sphere with tilt ≤ ``max_tilt_deg`` and u_y ≥ 0."""
     if n < 1:
@@ -48,7 +53,7 @@ def fibonacci_ups(n: int, max_tilt_deg: float = 180.0) -> np.ndarray:
     phi = math.pi * (1.0 + math.sqrt(5.0)) * i
     r = np.sqrt(1.0 - z * z)
     u = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-    keep = (np.degrees(np.arccos(np.clip(u[:, 2], -1, 1))) <= max_tilt_deg + 1e-9) & (u[:, 1] >= 0)
+    keep = (tilts_deg(u) <= max_tilt_deg + 1e-9) & (u[:, 1] >= 0)
     return u[keep]
 
 
@@ -401,11 +406,6 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     finally:
         sim.close()
     return _extended(lib, shelves, "probes_added", added, command)
-
-
-def tilts_deg(u: np.ndarray) -> np.ndarray:
-    """The tilt from upright (deg) of up axes (…, 3)."""
-    return np.degrees(np.arccos(np.clip(np.asarray(u)[..., 2], -1.0, 1.0)))
 
 
 def extend_shelves(lib: MotionLibrary, heights: Sequence[float], max_tilt_deg: float, *, probes: int = PROBES,
