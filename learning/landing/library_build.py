@@ -29,7 +29,7 @@ from felis.scenarios.drop import Drop
 
 GRID = 240
 PROBES = 1440
-MAX_TILT_DEG = 100.0  # the optimum lands almost nothing tilted further (docs/landing.md)
+MAX_TILT_DEG = 100.0  # the optimum from scratch lands almost nothing further; --extend goes on from the edge
 CHUNK = 256  # rollouts per batch when trying the probes
 ROBUST_OFFSET_DEG = 6.0
 ROBUST_GENERATIONS = 8
@@ -527,15 +527,11 @@ def recheck_entries(lib: MotionLibrary, heights: Sequence[float], *, workers: in
     from felis.learning.landing.evaluate import BatchLandingSim
     from felis.learning.landing.optimum import evaluate
 
-    shelves = {s.height_m: s for s in lib.shelves}
+    shelves, picked = _shelves_for(lib, heights)
     done = []
     sim = BatchLandingSim(nthread=workers)
     try:
-        for h in heights:
-            shelf = _shelf_at(shelves.values(), h)
-            if shelf is None:
-                raise ParameterError(f"--heights {h:g}: the library has shelves at "
-                                     f"{', '.join(f'{s:g}' for s in shelves)} m only")
+        for shelf in picked:
             drops = [candidate_drop(shelf, 2 * i) for i in range(len(shelf.up))]
             landed = np.array([v.landed for _, v in evaluate(sim, drops, shelf.x)], dtype=bool)
             shelves[shelf.height_m] = Shelf(shelf.height_m, shelf.up, shelf.x, landed, shelf.probe_up, shelf.lands,
