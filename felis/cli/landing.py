@@ -153,6 +153,10 @@ def register_eval(eval_sub) -> None:
                    help="optimum: a motion counts only if it also lands the four attitudes DEG away in roll and pitch "
                    "(its score the worst of five: a landing that holds when the release attitude is a little off; "
                    "5x the rollouts; default 0)")
+    e.add_argument("--warm-start", nargs="?", const="library", metavar="LIBRARY",
+                   help="optimum: each drop's search also starts from a motion library's motions for its attitude "
+                   "(its choice and every motion made within 30°; LIBRARY: a file from `felis train "
+                   "landing-library`, default the shipped one): the ceiling the library is read against")
     e.add_argument("--motions", type=Path, metavar="DIR",
                    help="optimum: write each drop's best motion to DIR/drop-<i>.json, a policy `felis run landing "
                    "--policy` runs (open loop, for that drop)")
@@ -438,6 +442,8 @@ def cmd_eval_landing(args) -> int:
         if args.live is not None:
             raise ParameterError("--live needs a policy that runs in the loop; optimum searches many rollouts")
         return _eval_optimum(args, drops)
+    if args.warm_start is not None:
+        raise ParameterError("--warm-start starts the optimum's search (--policy optimum)")
     check_policy(args.policy)
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
@@ -472,13 +478,21 @@ def _eval_optimum(args, drops) -> int:
     output.check_json_out(args.out)
     if args.motions is not None and args.motions.exists() and not args.motions.is_dir():
         raise ParameterError(f"--motions {args.motions}: not a directory")
+    warm = args.warm_start
+    if warm == "library":
+        from felis.learning.landing.library import DEFAULT_LIBRARY
+
+        warm = str(DEFAULT_LIBRARY)
+    if warm is not None and args.design != "cat":
+        raise ParameterError("--warm-start: the library's motions are the described cat's; not with --design")
     quiet = args.json or not sys.stderr.isatty()
     bar, step = output.progress(len(drops), "drops", quiet)
     with bar:
         best = optimise_all(drops, generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address,
                             workdir=str(args.checkpoint) if args.checkpoint else None, resume=args.resume,
-                            progress=step, design=args.design, late_ticks=args.late_ticks, patch_deg=args.patch)
+                            progress=step, design=args.design, late_ticks=args.late_ticks, patch_deg=args.patch,
+                            warm=warm)
     if args.motions is not None:
         _write_motions(args.motions, best)
     landed = [o.landed for o in best]
@@ -491,7 +505,7 @@ def _eval_optimum(args, drops) -> int:
            "reasons": dict(sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))),
            "standing_waist_m": None, "by_tilt": by_tilt(drops, landed),
            "search": {"generations": args.generations, "population": args.population, "restarts": args.restarts,
-                      "late_ticks": args.late_ticks, "patch_deg": args.patch,
+                      "late_ticks": args.late_ticks, "patch_deg": args.patch, "warm_start": warm,
                       "rollouts": int(sum(o.rollouts for o in best))},
            "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design,
            "drops": [o.as_dict() for o in best]}

@@ -137,6 +137,24 @@ class Shelf:
             x, c = mirror_motion(x), c ^ 1
         return x, c
 
+    def near(self, u: np.ndarray, radius_deg: float = EVAL_RADIUS_DEG, vote_radius_deg: float = RADIUS_DEG,
+             sigma_deg: float = SIGMA_DEG) -> np.ndarray:
+        """Motions (K, 55) to start a search for the attitude ``u`` from (the warm-started per-drop optimum,
+        `felis.learning.landing.optimum`): `choose`'s motion first, then every candidate within ``radius_deg``
+        of ``u``, nearest first; each in ``u``'s frame (mirrored for u_y < 0, as `choose` does)."""
+        u = np.asarray(u, dtype=float)
+        u = u / np.linalg.norm(u)
+        flip = u[1] < 0
+        if flip:
+            u = mirror_up(u)
+        cand_up, cand_x, _ = self.candidates()
+        c = self.choose(u, vote_radius_deg, sigma_deg)[1]
+        a = angles_deg(u, cand_up)
+        within = np.flatnonzero(a <= radius_deg)
+        within = within[np.argsort(a[within], kind="stable")]
+        xs = cand_x[np.concatenate([[c], within[within != c]])]
+        return mirror_motion(xs) if flip else xs
+
 
 class MotionLibrary:
     """Shelves of motions by drop height (module doc); ``choose(u, height)`` → the motion for that start."""
@@ -161,6 +179,11 @@ class MotionLibrary:
     def choose(self, u: np.ndarray, height_m: float) -> np.ndarray:
         s = self.shelf(height_m)
         return s.choose(u, self.radius_deg, s.sigma_deg or self.sigma_deg)[0]
+
+    def near(self, u: np.ndarray, height_m: float, radius_deg: float = EVAL_RADIUS_DEG) -> np.ndarray:
+        """`Shelf.near` on the shelf for ``height_m``, with this library's vote."""
+        s = self.shelf(height_m)
+        return s.near(u, radius_deg, self.radius_deg, s.sigma_deg or self.sigma_deg)
 
     def as_dict(self) -> dict:
         shelves = []

@@ -14,6 +14,13 @@ again from the next seeds. Every drop is
 searched at once: each generation's candidates of every drop are one batch (`felis.sim.batch.DropBatch`).
 A drop stops as soon as a candidate lands. Score (maximised, `score`): training's landing fitness plus 3
 for a landing. Deterministic per seed.
+
+**Warm start** (``warm``; ``felis eval landing --policy optimum --warm-start``). Searched from these seeds, the
+optimum lands almost nothing tilted beyond 100°, where the motion library, grown by continuation from motions
+that land a neighbouring attitude, lands about half (docs/landing.md): a search from scratch is no ceiling. With
+a library, a drop's generation 0 also tries the library's choice for its attitude and every library motion made
+within `WARM_RADIUS_DEG` of it (`MotionLibrary.near`), and CMA-ES starts from the best of all. So started, the
+optimum lands every drop the library lands (its choice is a seed) and is the ceiling the goals are read against.
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ from felis.scenarios.verdicts import landing_verdict
 SIGMA0 = 0.3
 POPULATION = 12
 GENERATIONS = 30
+WARM_RADIUS_DEG = 30.0  # a warm start's library candidates: as far as the library tries each (EVAL_RADIUS_DEG)
 
 
 def _circle(sign: int) -> np.ndarray:
@@ -199,18 +207,23 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
              restarts: int = 0, seed: int = 0, workers: int | None = None,
              progress: Callable[[int, int], None] | None = None, sim=None,
              index: Sequence[int] | None = None, late_ticks: int = 0, wrap=None,
-             patch_deg: float = 0.0) -> list[DropOptimum]:
+             patch_deg: float = 0.0, warm=None, warm_radius_deg: float = WARM_RADIUS_DEG) -> list[DropOptimum]:
     """The per-drop optimum of every drop (module doc); ``progress(generation, drops still searching)``.
     ``index``: each drop's index in the whole list (default 0, 1, …): its CMA-ES is seeded by it, so a drop's
     result does not depend on how the list is cut. ``late_ticks``: a motion must also land started that many
     ticks late (`evaluate`); the rollouts counted include those. ``wrap``, ``patch_deg``: as `evaluate`'s, in every
-    rollout (a drop counts as landed only if its motion lands the whole patch)."""
+    rollout (a drop counts as landed only if its motion lands the whole patch). ``warm``: a
+    `felis.learning.landing.library.MotionLibrary` whose motions for each drop's attitude (`MotionLibrary.near`:
+    its choice, then its candidates within ``warm_radius_deg``) join that drop's seeds (module doc)."""
     import cma
 
     from felis.learning.landing.evaluate import BatchLandingSim
 
     if generations < 0 or population < 2 or restarts < 0:
         raise ParameterError("optimum: generations ≥ 0, population ≥ 2 and restarts ≥ 0 are needed")
+    if not 0 <= warm_radius_deg <= 180:
+        raise ParameterError(f"optimum: the warm start's radius must be within [0, 180] degrees, got "
+                             f"{warm_radius_deg:g}")
     ids = list(range(len(drops))) if index is None else [int(i) for i in index]
     if len(ids) != len(drops):
         raise ParameterError(f"optimum: {len(drops)} drops need {len(drops)} indices, got {len(ids)}")
@@ -218,25 +231,31 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
     sim = sim or BatchLandingSim(nthread=workers)
     try:
         n = len(drops)
-        S = seeds()
+        S = [seeds()] * n
+        if warm is not None:
+            from felis.learning.landing.library import drop_up
+
+            S = [np.concatenate([S[i], warm.near(drop_up(d), d.height_m, warm_radius_deg)])
+                 for i, d in enumerate(drops)]
         best_s = np.full(n, -np.inf)
         best_x = np.zeros((n, DIMS))
         best_v: list = [None] * n
         used = np.zeros(n, dtype=int)
         runs = (late_ticks + 1) * (1 + 4 * (patch_deg > 0))  # rollouts per motion tried (`evaluate`)
         # generation 0: every seed on every drop
-        res = evaluate(sim, [d for d in drops for _ in S], np.tile(S, (n, 1)), late_ticks=late_ticks, wrap=wrap,
-                       patch_deg=patch_deg)
-        order = []
+        res = evaluate(sim, [d for i, d in enumerate(drops) for _ in S[i]], np.concatenate(S), late_ticks=late_ticks,
+                       wrap=wrap, patch_deg=patch_deg)
+        order, at = [], 0
         for i in range(n):
-            sc = np.array([res[i * len(S) + j][0] for j in range(len(S))])
+            sc = np.array([r[0] for r in res[at:at + len(S[i])]])
             order.append(np.argsort(-sc, kind="stable"))
             j = int(order[i][0])
-            best_s[i], best_x[i], best_v[i] = sc[j], S[j], res[i * len(S) + j][1]
-            used[i] += len(S) * runs
+            best_s[i], best_x[i], best_v[i] = sc[j], S[i][j], res[at + j][1]
+            used[i] += len(S[i]) * runs
+            at += len(S[i])
         for start in range(restarts + 1):
             active = [i for i in range(n) if not best_v[i].landed]
-            es = {i: cma.CMAEvolutionStrategy(S[int(order[i][min(start, len(S) - 1)])], SIGMA0,
+            es = {i: cma.CMAEvolutionStrategy(S[i][int(order[i][min(start, len(S[i]) - 1)])], SIGMA0,
                                               {"popsize": population, "bounds": [-1.0, 1.0], "verbose": -9,
                                                "seed": int(seed * 100003 + ids[i] * 101 + start + 1)})
                   for i in active}
@@ -285,10 +304,21 @@ def _init_worker() -> None:
     _worker_sim()
 
 
+_LIBRARIES: dict = {}  # per evaluator worker: the warm starts' libraries by path
+
+
 def _chunk_job(job) -> list[dict]:
     index, drops, settings = job
     settings = dict(settings)
     sim = _worker_sim(settings.pop("design", "cat"))
+    if "warm" in settings:
+        from felis.learning.landing.library import load_library
+
+        settings.pop("warm_sha256", None)
+        path = settings.pop("warm")
+        if path not in _LIBRARIES:
+            _LIBRARIES[path] = load_library(path)
+        settings["warm"] = _LIBRARIES[path]
     return [o.as_dict() for o in optimise(drops, sim=sim, index=index, **settings)]
 
 
@@ -296,7 +326,8 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
                  restarts: int = 0, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
                  chunk: int | None = None, workdir: str | None = None, resume: bool = False,
                  progress: Callable[[int], None] | None = None, design: str = "cat",
-                 late_ticks: int = 0, patch_deg: float = 0.0) -> list[DropOptimum]:
+                 late_ticks: int = 0, patch_deg: float = 0.0, warm: str | None = None,
+                 warm_radius_deg: float = WARM_RADIUS_DEG) -> list[DropOptimum]:
     """`optimise` for a long list: cut into chunks of ``chunk`` drops (default: shared evenly among the
     workers, at most 25 a chunk), one chunk per evaluator worker at a time
     (`felis.learning.common.evaluator`: a process pool of ``workers``, or Ray at ``ray_address``; one worker:
@@ -304,7 +335,8 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
     (JSON lines after a header with the settings and the drops); ``resume`` skips the drops already there.
     Results equal one `optimise` over the whole list (each drop is searched alone); ``progress(n)`` after
     each round of chunks, n drops done in it. ``design``: a cat of `felis.learning.landing.designs.DESIGNS`;
-    ``late_ticks``, ``patch_deg``: as in `optimise`."""
+    ``late_ticks``, ``patch_deg``: as in `optimise`; ``warm``: a library file (its path, which every worker
+    reads; on Ray, the same path on every machine) whose motions join the seeds, as `optimise`'s ``warm``."""
     import json
     from pathlib import Path
 
@@ -321,6 +353,18 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
         raise ParameterError(f"optimum: a patch must be ≥ 0 degrees, got {patch_deg}")
     if patch_deg:
         settings["patch_deg"] = float(patch_deg)
+    if warm is not None:
+        from felis.learning.landing.library import load_library
+
+        if not 0 <= warm_radius_deg <= 180:
+            raise ParameterError(f"optimum: the warm start's radius must be within [0, 180] degrees, got "
+                                 f"{warm_radius_deg:g}")
+        import hashlib
+
+        load_library(warm)  # a bad file is one line before any work
+        settings["warm"] = str(warm)
+        settings["warm_radius_deg"] = float(warm_radius_deg)
+        settings["warm_sha256"] = hashlib.sha256(Path(warm).read_bytes()).hexdigest()[:16]  # resume: the same file
     header = {"settings": settings, "drops": [d.as_dict() for d in drops]}
     done: dict[int, DropOptimum] = {}
     ckpt = Path(workdir) / CHECKPOINT if workdir else None

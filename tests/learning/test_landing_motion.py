@@ -121,3 +121,38 @@ def test_the_hard_drop_lands_on_mujoco_and_through_the_virtual_bus_with_the_libr
     assert tilt[0] > start - 5.0  # released as the drop says
     assert tilt[t < 0.72].min() < start - 60.0  # turned in the air, before the 0.78 s fall ends
     assert report["final_tilt_deg"] < 30.0  # and upright at the end
+
+
+def test_optimum_warm_start_through_the_command(tmp_path):
+    """`felis eval landing --policy optimum --warm-start LIBRARY`: a start tilted 120° that no generic seed lands
+    lands in generation 0; the checkpoint's settings name the library and its digest, so a changed file is not
+    resumed; misuse is one line each."""
+    import shutil
+
+    from felis.learning.landing.library import DEFAULT_LIBRARY
+
+    lib = tmp_path / "lib.json"
+    shutil.copy(DEFAULT_LIBRARY, lib)
+    drops = tmp_path / "drops.json"
+    drops.write_text(json.dumps([{"roll_deg": 120, "pitch_deg": 10, "yaw_deg": 0, "height_m": 1.0}]))
+    ck = tmp_path / "ck"
+    base = ("eval", "landing", "--policy", "optimum", "--drops", str(drops), "--generations", "0", "--json",
+            "--workers", "1", "--checkpoint", str(ck))
+    r = _felis(*base, "--warm-start", str(lib))
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["landed"] == 1 and res["search"]["warm_start"] == str(lib)
+    head = json.loads((ck / "optimum.jsonl").read_text().splitlines()[0])["settings"]
+    assert head["warm"] == str(lib) and len(head["warm_sha256"]) == 16
+    doc = json.loads(lib.read_text())
+    doc["sigma_deg"] = 2.5
+    lib.write_text(json.dumps(doc))
+    again = _felis(*base, "--warm-start", str(lib), "--resume")
+    assert again.returncode != 0 and "other drops or settings" in again.stderr, again.stderr
+    for argv, says in (((*base[:2], "--policy", "library", *base[4:6], "--warm-start"),
+                        "--warm-start starts the optimum's search"),
+                       ((*base, "--warm-start", "--design", "6V"), "not with --design"),
+                       ((*base, "--warm-start", str(tmp_path / "none.json")), "none.json")):
+        bad = _felis(*argv)
+        assert bad.returncode != 0 and says in bad.stderr, bad.stderr
+        assert len(bad.stderr.strip().splitlines()) == 1, bad.stderr

@@ -94,3 +94,27 @@ def test_late_ticks_judge_a_motion_by_its_worst_delay(sim):
     assert all(r[0][1].landed for r in by_k)  # holding still from 0.5 m lands however late it starts
     with pytest.raises(Exception, match="late ticks must be ≥ 0"):
         evaluate(sim, drops[:1], xs[:1], late_ticks=-1)
+
+
+def test_warm_start_lands_what_the_library_lands(sim):
+    """Warm-started from the shipped library, generation 0 alone lands a start tilted 120° (and its mirror
+    image) that the library's choice lands and no generic seed does; its seeds are the 13 generic ones, then the
+    library's choice, then its motions within 30°, nearest first."""
+    from felis.learning.landing.evaluate import run_drops
+    from felis.learning.landing.library import angles_deg, drop_up, load_library, mirror_up
+
+    lib = load_library()
+    drops = [Drop(120.0, 10.0, 0.0, 1.0), Drop(-120.0, 10.0, 0.0, 1.0)]
+    assert all(o.landed for o in run_drops(drops, "library"))
+    cold = optimise(drops, generations=0, population=2, sim=sim)
+    warm = optimise(drops, generations=0, population=2, sim=sim, warm=lib)
+    assert not any(o.landed for o in cold) and all(o.landed for o in warm)
+    shelf = lib.shelf(1.0)
+    for d, o in zip(drops, warm, strict=True):
+        u = drop_up(d)
+        near = lib.near(u, 1.0)
+        assert np.array_equal(near[0], lib.choose(u, 1.0))
+        cand_up = shelf.candidates()[0]
+        within = int((angles_deg(mirror_up(u) if u[1] < 0 else u, cand_up) <= 30.0).sum())
+        assert len(near) in (within, within + 1)  # the choice, if it is not within 30°, comes on top
+        assert o.rollouts == len(seeds()) + len(near)
