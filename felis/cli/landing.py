@@ -138,7 +138,8 @@ def register_eval(eval_sub) -> None:
                    "motion that lands most often near the attitude the IMU gives at release; the default), shipped "
                    "(the evolved nets), passive (hold the pose at release), stand (go to the stand pose), rules (the "
                    "hand-written spine rule of the nearest training orientation), optimum (the best open-loop "
-                   "whole-body motion CMA-ES finds for each drop: the ceiling; slow), a policy file from `felis "
+                   "whole-body motion CMA-ES finds for each drop; slow; with --warm-start, searched from the library's "
+                   "motions too: the ceiling), a policy file from `felis "
                    "train landing` (.npz) or a library from `felis train landing-library` (.json)")
     e.add_argument("--generations", type=int, default=30, help="optimum: CMA-ES generations per start (default 30)")
     e.add_argument("--population", type=int, default=12, help="optimum: CMA-ES population (default 12)")
@@ -505,7 +506,8 @@ def _eval_optimum(args, drops) -> int:
            "reasons": dict(sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))),
            "standing_waist_m": None, "by_tilt": by_tilt(drops, landed),
            "search": {"generations": args.generations, "population": args.population, "restarts": args.restarts,
-                      "late_ticks": args.late_ticks, "patch_deg": args.patch, "warm_start": warm,
+                      "late_ticks": args.late_ticks, "patch_deg": args.patch,
+                      "warm_start": args.warm_start,  # "library": the shipped one
                       "rollouts": int(sum(o.rollouts for o in best))},
            "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design,
            "drops": [o.as_dict() for o in best]}
