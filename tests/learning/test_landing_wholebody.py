@@ -119,7 +119,8 @@ def test_a_library_pick_passes_over_a_motion_that_does_not_land_its_start_whatev
     no_votes = np.zeros((len(s.lands), 2), bool)
     planted = Shelf(3.0, np.concatenate([s.up, _up((135.0, 0.0, 0.0))[None]]),
                     np.concatenate([s.x, np.zeros((1, DIMS))]), np.append(s.landed, True), s.probe_up,
-                    np.concatenate([s.lands, no_votes], 1), [*s.drops, {"roll_deg": 135.0, "pitch_deg": 0.0, "yaw_deg": 0.0, "height_m": 3.0}], s.sigma_deg)
+                    np.concatenate([s.lands, no_votes], 1),
+                    [*s.drops, {"roll_deg": 135.0, "pitch_deg": 0.0, "yaw_deg": 0.0, "height_m": 3.0}], s.sigma_deg)
     target = [(135.0, 0.0, 0.0)]
     shipped = library_picks(lib, 3.0, target)[0]
     got = library_picks(MotionLibrary([planted], lib.radius_deg, lib.sigma_deg), 3.0, target)[0]
