@@ -424,7 +424,8 @@ def test_add_probes_tries_a_denser_grid_on_a_shelf_keeps_what_it_had_and_resumes
     ang = np.degrees(np.arccos(np.clip(new_up @ cand_up.T, -1, 1)))
     assert not np.any(new_lands & (ang > 8.0 + 1e-9))  # tried only within the radius
     assert np.all(np.degrees(np.arccos(np.clip(new_up[:, 2], -1, 1))) <= 100.0 + 1e-9) and np.all(new_up[:, 1] >= 0)
-    assert dense.shelf(1.0).sigma_deg is None and np.array_equal(dense.shelf(1.0).lands, base.shelf(1.0).lands)
+    kept = dense.shelf(1.0)  # the other shelf as it was, its own vote width too
+    assert kept.sigma_deg == base.shelf(1.0).sigma_deg and np.array_equal(kept.lands, base.shelf(1.0).lands)
     doc = json.loads(out.read_text())
     assert doc["probes_added"][-1]["probes"] == n_new and doc["extended_by"][-1].startswith(
         "felis train landing-library --add-probes 40")
