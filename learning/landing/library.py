@@ -85,6 +85,13 @@ def angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(np.asarray(a) @ np.asarray(b).T, -1.0, 1.0)))
 
 
+def _half(u: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(the unit up axis ``u`` in the half the shelves hold, u_y ≥ 0; whether it was mirrored there)."""
+    u = np.asarray(u, dtype=float)
+    u = u / np.linalg.norm(u)
+    return (mirror_up(u), True) if u[1] < 0 else (u, False)
+
+
 @dataclass
 class Shelf:
     """The motions for one drop height (module doc): ``up`` (E, 3) the entries' attitudes (u_y ≥ 0), ``x``
@@ -110,11 +117,7 @@ class Shelf:
                exclude: int | None = None) -> tuple[np.ndarray, int]:
         """(the motion x (55,), the candidate id chosen) for the up axis ``u`` (3,) (module doc). ``exclude``: a
         probe left out of the vote (cross-validation)."""
-        u = np.asarray(u, dtype=float)
-        u = u / np.linalg.norm(u)
-        flip = u[1] < 0
-        if flip:
-            u = mirror_up(u)
+        u, flip = _half(u)
         cand_up, cand_x, cand_landed = self.candidates()
         near = angles_deg(u, cand_up)
         c = -1
@@ -142,11 +145,7 @@ class Shelf:
         """Motions (K, 55) to start a search for the attitude ``u`` from (the warm-started per-drop optimum,
         `felis.learning.landing.optimum`): `choose`'s motion first, then every candidate within ``radius_deg``
         of ``u``, nearest first; each in ``u``'s frame (mirrored for u_y < 0, as `choose` does)."""
-        u = np.asarray(u, dtype=float)
-        u = u / np.linalg.norm(u)
-        flip = u[1] < 0
-        if flip:
-            u = mirror_up(u)
+        u, flip = _half(u)
         cand_up, cand_x, _ = self.candidates()
         c = self.choose(u, vote_radius_deg, sigma_deg)[1]
         a = angles_deg(u, cand_up)
