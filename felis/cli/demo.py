@@ -102,7 +102,7 @@ def _episodes(run_dir: Path, no_video: bool):
         ("[bold]felis demo 3/5[/]: a hard drop: the cat released tilted 140° (roll 141°, pitch 8°) from 3 m, nearly "
          "upside down, under the same landing controller and motion library (MuJoCo). Beyond 100° the library's "
          "motions were found by continuation from those that land at the edge (felis train landing-library "
-         "--extend); from 3 m it lands about half the starts tilted 120–150° (docs/landing.md)",
+         "--extend); from 3 m it lands about three in four of the starts tilted 120–150° (docs/landing.md)",
          lambda: dict(robot="cat", controller="landing", duration=2.5, drop=HARD_DROP,
                       controller_options={"policy": None, "drop_height": HARD_DROP[0]},
                       log=run_dir / "hard_drop.mcap", video=None if no_video else run_dir / "hard_drop.mp4",

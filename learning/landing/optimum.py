@@ -17,7 +17,7 @@ for a landing. Deterministic per seed.
 
 **Warm start** (``warm``; ``felis eval landing --policy optimum --warm-start``). Searched from these seeds, the
 optimum lands almost nothing tilted beyond 100°, where the motion library, grown by continuation from motions
-that land a neighbouring attitude, lands about half (docs/landing.md): a search from scratch is no ceiling. With
+that land a neighbouring attitude, lands most (docs/landing.md): a search from scratch is no ceiling. With
 a library, a drop's generation 0 also tries the library's choice for its attitude and every library motion made
 within `WARM_RADIUS_DEG` of it (`MotionLibrary.near`), and CMA-ES starts from the best of all. So started, the
 optimum lands every drop the library lands (its choice is a seed) and is the ceiling the goals are read against.
