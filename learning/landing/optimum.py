@@ -203,6 +203,11 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
     return [min((scored[i + s * n] for s in range(blocks)), key=lambda sv: sv[0]) for i in range(n)]
 
 
+def _check_warm_radius(deg: float) -> None:
+    if not 0 <= deg <= 180:
+        raise ParameterError(f"optimum: the warm start's radius must be within [0, 180] degrees, got {deg:g}")
+
+
 def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, population: int = POPULATION,
              restarts: int = 0, seed: int = 0, workers: int | None = None,
              progress: Callable[[int, int], None] | None = None, sim=None,
@@ -221,9 +226,7 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
 
     if generations < 0 or population < 2 or restarts < 0:
         raise ParameterError("optimum: generations ≥ 0, population ≥ 2 and restarts ≥ 0 are needed")
-    if not 0 <= warm_radius_deg <= 180:
-        raise ParameterError(f"optimum: the warm start's radius must be within [0, 180] degrees, got "
-                             f"{warm_radius_deg:g}")
+    _check_warm_radius(warm_radius_deg)
     ids = list(range(len(drops))) if index is None else [int(i) for i in index]
     if len(ids) != len(drops):
         raise ParameterError(f"optimum: {len(drops)} drops need {len(drops)} indices, got {len(ids)}")
@@ -354,13 +357,11 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
     if patch_deg:
         settings["patch_deg"] = float(patch_deg)
     if warm is not None:
-        from felis.learning.landing.library import load_library
-
-        if not 0 <= warm_radius_deg <= 180:
-            raise ParameterError(f"optimum: the warm start's radius must be within [0, 180] degrees, got "
-                                 f"{warm_radius_deg:g}")
         import hashlib
 
+        from felis.learning.landing.library import load_library
+
+        _check_warm_radius(warm_radius_deg)
         load_library(warm)  # a bad file is one line before any work
         settings["warm"] = str(warm)
         settings["warm_radius_deg"] = float(warm_radius_deg)
