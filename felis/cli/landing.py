@@ -111,6 +111,9 @@ def register_train(train_sub) -> None:
     b.add_argument("--add-probes", type=int, metavar="N",
                    help="no search: add the probes of an N-point Fibonacci sphere to the --heights shelves of --base, "
                    "each tried with the motions within --probe-radius of it (a denser grid for a narrower vote)")
+    b.add_argument("--near-misses", action="store_true",
+                   help="--add-probes: only the sphere's points whose nearest probe is a miss (the vote, that probe "
+                   "left out, picks a motion that fails there): a refinement where the vote is wrong")
     b.add_argument("--recheck", action="store_true",
                    help="no search: try every entry of the --heights shelves of --base on its own attitude again and "
                    "record whether it lands (libraries built before robustify's fix carry wrong flags)")
@@ -258,6 +261,8 @@ def cmd_train_library(args) -> int:
     if sum(x is not None and x != [] and x is not False for x in (args.add, args.add_probes, args.join,
                                                                   args.recheck, args.extend)) > 1:
         raise ParameterError("--add, --add-probes, --join, --recheck and --extend: one at a time")
+    if args.near_misses and args.add_probes is None:
+        raise ParameterError("--near-misses refines --add-probes N: give it too")
     if args.extend is not None:
         return _extend_library(args, out, command)
     if args.recheck:
@@ -397,11 +402,13 @@ def _add_probes_to_library(args, out: Path, command: str) -> int:
     with bar:
         lib = add_probes(lib, args.heights, args.add_probes, radius_deg=args.probe_radius,
                          max_tilt_deg=args.max_tilt, sigma_deg=args.sigma, workers=args.workers, command=command,
-                         workdir=workdir, resume=args.resume, progress=progress)
+                         workdir=workdir, resume=args.resume, near_misses=args.near_misses, progress=progress)
     _write_library(out, lib)
     for a in lib.meta["probes_added"][-len(args.heights):]:
         print(f"{a['height_m']:g} m: {a['probes']} probes added ({a['points']}-point sphere, motions within "
-              f"{a['radius_deg']:g}°), {a['landed_by_some']} of them landed by some motion"
+              f"{a['radius_deg']:g}°"
+              + (f"; only near the {a['near_misses']} probes where the vote missed" if "near_misses" in a else "")
+              + f"), {a['landed_by_some']} of them landed by some motion"
               + (f"; vote σ {a['sigma_deg']:g}°" if "sigma_deg" in a else ""))
     print(f"library: {out} (from {base})")
     return 0

@@ -129,8 +129,8 @@ class Shelf:
             if voters.size:
                 w = np.exp(-0.5 * (a[voters] / sigma_deg) ** 2)
                 score = w @ self.lands[voters]
-                if score.max() > 0:
-                    best = np.flatnonzero(score >= score.max() - 1e-12)
+                if score.max() > 0:  # ties relative to the best: far probes' weights can be far below 1e-12
+                    best = np.flatnonzero(score >= score.max() * (1.0 - 1e-9))
                     c = int(best[np.argmin(near[best])])
         if c < 0:
             pool = np.flatnonzero(cand_landed) if cand_landed.any() else np.arange(len(cand_up))
