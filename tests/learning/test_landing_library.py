@@ -484,7 +484,7 @@ def test_add_probes_refuses_a_height_without_a_shelf_and_bad_numbers_in_one_line
 WARM_1M, WARM_3M = 89, 94  # the warm-started optimum on random:100 seed 0 (docs/landing.md)
 
 
-@pytest.mark.parametrize("height, want", [(1.0, (85, 78)), (3.0, (78, 73))])
+@pytest.mark.parametrize("height, want", [(1.0, (85, 78)), (3.0, (84, 72))])
 def test_the_shipped_library_lands_what_the_docs_say_on_random_100(height, want):
     """README and docs/landing.md: the default policy on `random:100` seeds 0 and 1. The rollouts are deterministic
     on a machine; ±1 allows for another CPU's floating point at a drop on the edge."""
@@ -495,7 +495,7 @@ def test_the_shipped_library_lands_what_the_docs_say_on_random_100(height, want)
         assert abs(got - n) <= 1, f"{height:g} m seed {seed}: {got} landed, the docs say {n}"
 
 
-@pytest.mark.parametrize("height, want, share", [(1.0, WARM_1M, 96), (3.0, WARM_3M, 83)])
+@pytest.mark.parametrize("height, want, share", [(1.0, WARM_1M, 96), (3.0, WARM_3M, 89)])
 def test_the_warm_optimum_shipped_is_a_ceiling_of_the_shipped_library(height, want, share):
     """`learning/weights/landing_optimum_warm-<h>m.json` (`felis eval landing --policy optimum --warm-start
     --restarts 1 --drops random:100 --seed 0`): it lands what the docs say, searched from the shipped library's
