@@ -154,9 +154,9 @@ def try_probes(sim, shelf_up: np.ndarray, shelf_x: np.ndarray, probe_up: np.ndar
 
 def misses(shelf: Shelf, radius_deg: float = RADIUS_DEG, sigma_deg: float = SIGMA_DEG,
            among: np.ndarray | None = None) -> np.ndarray:
-    """The probes (of ``among``, default all; ascending) where the vote is wrong: some candidate lands the probe,
-    but the choice there with the probe left out of the vote does not (its neighbours point to a motion that
-    fails on it)."""
+    """The probes (of ``among``, in its order; default all, ascending) where the vote is wrong: some candidate
+    lands the probe, but the choice there with the probe left out of the vote does not (its neighbours point to a
+    motion that fails on it)."""
     some = shelf.lands.any(axis=1)
     ps = np.flatnonzero(some) if among is None else np.asarray(among, dtype=int)[some[among]]
     return np.array([p for p in ps if not shelf.lands[p, shelf.choose(shelf.probe_up[p], radius_deg, sigma_deg,
