@@ -484,7 +484,7 @@ def test_add_probes_refuses_a_height_without_a_shelf_and_bad_numbers_in_one_line
 WARM_1M, WARM_3M = 89, 94  # the warm-started optimum on random:100 seed 0 (docs/landing.md)
 
 
-@pytest.mark.parametrize("height, want", [(1.0, (85, 78)), (3.0, (84, 72))])
+@pytest.mark.parametrize("height, want", [(1.0, (85, 78)), (3.0, (84, 71))])
 def test_the_shipped_library_lands_what_the_docs_say_on_random_100(height, want):
     """README and docs/landing.md: the default policy on `random:100` seeds 0 and 1. The rollouts are deterministic
     on a machine; ±1 allows for another CPU's floating point at a drop on the edge."""
