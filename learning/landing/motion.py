@@ -118,7 +118,7 @@ class MotionRule:
         return self.table[k].copy() if 0 <= k < self.steps else np.zeros(12)
 
     def as_dict(self) -> dict:
-        return {"kind": self.kind, "motion_x": [round(float(v), 6) for v in self.x], "height_m": self.height_m,
+        return {"kind": self.kind, "motion_x": [float(v) for v in self.x], "height_m": self.height_m,
                 "steps": self.steps}
 
     @staticmethod

@@ -144,7 +144,7 @@ class DropOptimum:
                 "reasons": list(self.reasons),
                 "tilt_deg": None if self.tilt_deg is None else round(self.tilt_deg, 2),
                 "score": round(self.score, 4), "rollouts": self.rollouts,
-                "motion_x": [round(v, 4) for v in self.x]}
+                "motion_x": [float(v) for v in self.x]}  # full precision: at 3 m a 1e-4 change can flip a landing
 
 
 def patch(d: Drop, deg: float) -> list[Drop]:

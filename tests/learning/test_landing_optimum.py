@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from felis.learning.landing.optimum import (
     DIMS,
     DT,
+    DropOptimum,
     OpenLoop,
     decode,
     evaluate,
@@ -118,3 +121,12 @@ def test_warm_start_lands_what_the_library_lands(sim):
         within = int((angles_deg(mirror_up(u) if u[1] < 0 else u, cand_up) <= 30.0).sum())
         assert len(near) in (within, within + 1)  # the choice, if it is not within 30°, comes on top
         assert o.rollouts == len(seeds()) + len(near)
+
+
+def test_a_results_row_keeps_the_motion_to_the_last_digit():
+    # from 3 m the searched motion rounded to 4 decimals failed a drop the motion itself had landed (seed 1, drop 40
+    # of the 3 m ceiling): the results and the checkpoint keep every digit, so a resume and a re-run reproduce it
+    x = np.random.default_rng(5).uniform(-1, 1, DIMS).tolist()
+    o = DropOptimum(Drop(120.18489817990559, 51.057673943281365, -60.2, 3.0), True, 7.88, x, 255, "", 3.1)
+    back = DropOptimum.from_dict(json.loads(json.dumps(o.as_dict())))
+    assert back.x == x
