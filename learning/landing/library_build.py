@@ -159,8 +159,25 @@ def misses(shelf: Shelf, radius_deg: float = RADIUS_DEG, sigma_deg: float = SIGM
     motion that fails on it)."""
     some = shelf.lands.any(axis=1)
     ps = np.flatnonzero(some) if among is None else np.asarray(among, dtype=int)[some[among]]
-    return np.array([p for p in ps if not shelf.lands[p, shelf.choose(shelf.probe_up[p], radius_deg, sigma_deg,
-                                                                       exclude=p)[1]]], dtype=int)
+    cand_up = shelf.candidates()[0]
+    lands = shelf.lands.astype(float)
+    wrong = []
+    for k in range(0, len(ps), 256):  # `Shelf.choose` for 256 probes at once: one product of weights and verdicts
+        rows = ps[k:k + 256]
+        u = shelf.probe_up[rows] / np.linalg.norm(shelf.probe_up[rows], axis=1, keepdims=True)
+        a = angles_deg(u, shelf.probe_up)
+        w = np.where(a <= radius_deg, np.exp(-0.5 * (a / sigma_deg) ** 2), 0.0)
+        w[np.arange(len(rows)), rows] = 0.0  # the probe's own vote left out
+        score = w @ lands
+        top = score.max(axis=1)
+        tied = score >= top[:, None] * (1.0 - 1e-9)
+        pick = np.argmin(np.where(tied, angles_deg(u, cand_up), np.inf), axis=1)  # ties to the nearest
+        for p, c, t, y in zip(rows, pick, top, u[:, 1], strict=True):
+            if t <= 0 or y < 0:  # no vote (choose falls back on the nearest landed entry) or a mirrored attitude
+                c = shelf.choose(shelf.probe_up[p], radius_deg, sigma_deg, exclude=p)[1]
+            if not shelf.lands[p, c]:
+                wrong.append(p)
+    return np.array(wrong, dtype=int)
 
 
 def fill_targets(shelf: Shelf, round_: int) -> np.ndarray:
@@ -369,6 +386,17 @@ def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, st
     return _extended(lib, shelves, "added", added, command)
 
 
+def _nearest(a: np.ndarray, b: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """For each unit vector of ``a`` (N, 3): the index of the nearest of ``b`` (M, 3) and the cosine to it, in
+    chunks of ``a`` (a 368 640-point sphere against 11 000 probes is 30 GB as one matrix)."""
+    idx, cos = np.empty(len(a), dtype=int), np.empty(len(a))
+    for k in range(0, len(a), chunk):
+        d = a[k:k + chunk] @ b.T
+        idx[k:k + chunk] = np.argmax(d, axis=1)
+        cos[k:k + chunk] = d[np.arange(len(d)), idx[k:k + chunk]]
+    return idx, cos
+
+
 def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, radius_deg: float = EVAL_RADIUS_DEG,
                max_tilt_deg: float = MAX_TILT_DEG, sigma_deg: float | None = None, workers: int | None = None,
                command: str = "", workdir: str | Path | None = None, resume: bool = False,
@@ -396,14 +424,16 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
         for shelf in targets:
             h = shelf.height_m
             new = fibonacci_ups(points, max_tilt_deg)
-            if len(shelf.probe_up):
-                new = new[angles_deg(new, shelf.probe_up).min(axis=1) > 1e-3]
             wrong = None
-            if near_misses and len(shelf.probe_up):
-                wrong = misses(shelf, lib.radius_deg, shelf.sigma_deg or lib.sigma_deg)
-                is_wrong = np.zeros(len(shelf.probe_up), dtype=bool)
-                is_wrong[wrong] = True
-                new = new[is_wrong[np.argmax(new @ shelf.probe_up.T, axis=1)]]
+            if len(shelf.probe_up):
+                nearest, cos = _nearest(new, shelf.probe_up)
+                keep = cos < math.cos(math.radians(1e-3))  # not probed already
+                if near_misses:
+                    wrong = misses(shelf, lib.radius_deg, shelf.sigma_deg or lib.sigma_deg)
+                    is_wrong = np.zeros(len(shelf.probe_up), dtype=bool)
+                    is_wrong[wrong] = True
+                    keep &= is_wrong[nearest]
+                new = new[keep]
             ck = None if workdir is None else Path(workdir) / f"{h:g}m" / "probes_added.npy"
             done = None
             if ck is not None:

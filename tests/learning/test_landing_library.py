@@ -621,3 +621,12 @@ def test_extend_takes_a_shelf_beyond_its_farthest_probe_from_the_motions_at_its_
 def angles_min(a: np.ndarray, b: np.ndarray) -> float:
     """The largest, over the rows of a, of the angle (deg) to the nearest row of b."""
     return float(np.degrees(np.arccos(np.clip(a @ b.T, -1, 1))).min(axis=1).max())
+
+
+def test_nearest_in_chunks_is_the_whole_matrix_argmax():
+    from felis.learning.landing.library_build import _nearest, fibonacci_ups
+
+    a, b = fibonacci_ups(500), fibonacci_ups(37, 120.0)
+    idx, cos = _nearest(a, b, chunk=7)
+    d = a @ b.T
+    assert np.array_equal(idx, np.argmax(d, axis=1)) and np.allclose(cos, d.max(axis=1))
