@@ -1,0 +1,118 @@
+"""How much of a landing holds when the drop height moves by a millimetre or two: the ceiling against the library.
+
+The per-drop optimum (the ceiling of issue 21's goals, `felis eval landing --policy optimum --warm-start`) searches
+each drop at its exact height and stops at the first motion that lands it. The motion library chooses from what
+landed neighbouring attitudes. At 3 m the impact is at the edge of what the leg links' clearance allows, and
+whether a motion lands can turn on where the cat's lowest point was at release to the millimetre. This runs
+each drop's motion — the ceiling's (from its results file) and the library's choice — from the drop height and
+from ``--mm`` millimetres above and below it, and prints how many land at the exact height, how many land on
+average over the heights tried, and how many land at every one of them.
+
+    python bench/landing_height.py [--height 3] [--ceiling RESULTS.json] [--mm 3] [--drops N] [--json]
+
+The default ceiling is the shipped results file for ``random:100 --seed 0`` at that height
+(``learning/weights/landing_optimum_warm-<h>m.json``); its ``seed`` and heights say which drops to run. Nothing
+is random: each (drop, motion, height) is simulated once, by `felis.learning.landing.optimum.evaluate`.
+About 30 s on 2 cores for 100 drops at ±3 mm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from felis.errors import ParameterError
+from felis.learning.landing.library import DEFAULT_LIBRARY, drop_up, load_library
+from felis.scenarios.drop import Drop, random_drops
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "learning" / "weights"
+
+
+def ceiling_file(height_m: float) -> Path:
+    return WEIGHTS / f"landing_optimum_warm-{height_m:g}m.json"
+
+
+def read_ceiling(path: Path, height_m: float) -> tuple[list[Drop], np.ndarray, np.ndarray]:
+    """(the drops, each drop's motion (N, 55), whether the file says it landed (N,)) of a ``--policy optimum``
+    results file for ``random:N`` at ``height_m``."""
+    doc = json.loads(Path(path).read_text())
+    rows = doc.get("drops")
+    if not isinstance(rows, list) or not rows or "motion_x" not in rows[0]:
+        raise ParameterError(f"{path}: not a per-drop optimum's results (felis eval landing --policy optimum --json)")
+    if not all(math.isclose(r["height_m"], height_m) for r in rows):
+        raise ParameterError(f"{path}: its drops are not from {height_m:g} m")
+    seed = doc.get("seed")
+    if not isinstance(seed, int):
+        raise ParameterError(f"{path}: no seed (the drops must be random:N --seed S)")
+    drops = random_drops(len(rows), seed=seed, heights=height_m)
+    for d, r in zip(drops, rows, strict=True):
+        if abs(d.roll_deg - r["roll_deg"]) > 1e-3 or abs(d.pitch_deg - r["pitch_deg"]) > 1e-3:
+            raise ParameterError(f"{path}: its drops are not random:{len(rows)} --seed {seed}")
+    return drops, np.array([r["motion_x"] for r in rows], dtype=float), np.array([bool(r["landed"]) for r in rows])
+
+
+def landed_at(sim, drops: list[Drop], xs: np.ndarray, offsets_mm: list[int]) -> np.ndarray:
+    """(N, len(offsets_mm)) bool: motion ``xs[i]`` lands drop i dropped from its height + each offset."""
+    from felis.learning.landing.optimum import evaluate
+
+    every = [Drop(d.roll_deg, d.pitch_deg, d.yaw_deg, d.height_m + mm / 1000.0) for d in drops for mm in offsets_mm]
+    out = evaluate(sim, every, np.repeat(xs, len(offsets_mm), axis=0))
+    return np.array([v.landed for _, v in out], dtype=bool).reshape(len(drops), len(offsets_mm))
+
+
+def summary(R: np.ndarray, offsets_mm: list[int]) -> dict:
+    at = R[:, offsets_mm.index(0)]
+    return {"landed_at_height": int(at.sum()), "mean_over_heights": round(float(R.mean(axis=1).sum()), 1),
+            "landed_at_every_height": int(R.all(axis=1).sum()),
+            "by_offset_mm": {str(mm): int(R[:, k].sum()) for k, mm in enumerate(offsets_mm)}}
+
+
+def main() -> None:
+    from felis.learning.landing.optimum import _worker_sim
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--height", type=float, default=3.0)
+    ap.add_argument("--ceiling", type=Path, help="a --policy optimum --json results file (default: the shipped "
+                    "seed-0 file for --height)")
+    ap.add_argument("--library", type=Path, default=DEFAULT_LIBRARY)
+    ap.add_argument("--mm", type=int, default=3, help="heights from −MM to +MM mm in 1 mm steps (default 3)")
+    ap.add_argument("--drops", type=int, help="only the first N drops")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    if args.mm < 1:
+        raise SystemExit("landing_height: --mm must be ≥ 1")
+    try:
+        drops, ceil_x, ceil_landed = read_ceiling(args.ceiling or ceiling_file(args.height), args.height)
+        lib = load_library(args.library)
+    except (OSError, ValueError, ParameterError) as e:
+        raise SystemExit(f"landing_height: {e}") from None
+    n = len(drops) if args.drops is None else max(1, min(args.drops, len(drops)))
+    drops, ceil_x, ceil_landed = drops[:n], ceil_x[:n], ceil_landed[:n]
+    lib_x = np.array([lib.choose(drop_up(d), d.height_m) for d in drops])
+    offsets = list(range(-args.mm, args.mm + 1))
+    sim = _worker_sim()
+    rows = {}
+    for name, xs in (("ceiling", ceil_x), ("library", lib_x)):
+        rows[name] = summary(landed_at(sim, drops, xs, offsets), offsets)
+    rows["ceiling"]["file_says_landed"] = int(ceil_landed.sum())
+    c, b = rows["ceiling"], rows["library"]
+    ratios = {"at_height": round(b["landed_at_height"] / max(c["landed_at_height"], 1), 3),
+              "mean_over_heights": round(b["mean_over_heights"] / max(c["mean_over_heights"], 1e-9), 3)}
+    out = {"height_m": args.height, "drops": n, "offsets_mm": offsets, **rows, "library_over_ceiling": ratios}
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return
+    print(f"{n} drops from {args.height:g} m, each also from ±1…{args.mm} mm")
+    print(f"{'':10} {'at h':>6} {'mean over heights':>18} {'at every height':>16}")
+    for name in ("ceiling", "library"):
+        r = rows[name]
+        print(f"{name:10} {r['landed_at_height']:>6} {r['mean_over_heights']:>18} {r['landed_at_every_height']:>16}")
+    print(f"library / ceiling: {ratios['at_height']} at h, {ratios['mean_over_heights']} on average over the heights")
+
+
+if __name__ == "__main__":
+    main()
