@@ -16,6 +16,8 @@ BatchLandingSim`) against the library alone.
 with the feedback on (`robustness`), and each motion that lands is tried from attitudes 1° and 2° away (roll,
 pitch and the diagonals, each way): does a closed-loop touchdown make a landing hold over a wider patch of
 attitudes? ``--patch D``: the search must land the attitudes D away in roll and pitch too (the worst of five).
+``--patch-mm M``: the search must land the drop from M mm lower and higher too (the worst of three); each landing
+motion is then also run from 1, 2 and 3 mm lower and higher: does a landing hold over a band of drop heights?
 """
 
 from __future__ import annotations
@@ -85,12 +87,14 @@ DIRECTIONS = [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)] + [(a * math.sqr
 
 
 def robustness(drops, k: float, on_m: float, freeze_m: float, *, generations: int, population: int,
-               offsets_deg=(1.0, 2.0), patch_deg: float = 0.0, workers=None) -> dict:
+               offsets_deg=(1.0, 2.0), patch_deg: float = 0.0, patch_mm: float = 0.0,
+               offsets_mm=(1, 2, 3), workers=None) -> dict:
     """The closed loop inside the search: each drop's motion searched (`felis.learning.landing.optimum.optimise`,
     no restart) with the feedback of gain ``k`` on in every rollout (k = 0: open loop, as the library's), and with
     ``patch_deg`` > 0 required to land the four attitudes that far away in roll and pitch too (its worst); then
     each motion that lands its drop run, with the same feedback, from the attitudes ``offsets_deg`` away in eight
-    directions (roll, pitch and the diagonals, each way): how far a landing carries."""
+    directions (roll, pitch and the diagonals, each way): how far a landing carries; and from ``offsets_mm``
+    millimetres lower and higher (``patch_mm`` > 0: the search must land ±``patch_mm`` too)."""
     from felis.learning.landing.optimum import evaluate, optimise
     from felis.scenarios.drop import Drop
 
@@ -98,25 +102,32 @@ def robustness(drops, k: float, on_m: float, freeze_m: float, *, generations: in
     sim = BatchLandingSim("cat", nthread=workers)
     try:
         found = optimise(drops, generations=generations, population=population, restarts=0, sim=sim, wrap=wrap,
-                         patch_deg=patch_deg)
+                         patch_deg=patch_deg, patch_mm=patch_mm)
         ok = [r for r in found if r.landed]
-        near, xs = [], []
+        near, xs, up_down = [], [], []
         for r in ok:
             d = r.drop
             for off in offsets_deg:
                 for dr, dp in DIRECTIONS:
                     near.append(Drop(d.roll_deg + off * dr, d.pitch_deg + off * dp, d.yaw_deg, d.height_m))
                     xs.append(r.x)
+            up_down += [Drop(d.roll_deg, d.pitch_deg, d.yaw_deg, d.height_m + sign * mm / 1000.0)
+                        for mm in offsets_mm for sign in (-1, 1)]
         verdicts = evaluate(sim, near, np.array(xs), wrap=wrap) if near else []
+        heights = (evaluate(sim, up_down, np.repeat([r.x for r in ok], 2 * len(offsets_mm), axis=0), wrap=wrap)
+                   if ok else [])
     finally:
         sim.close()
     m = len(DIRECTIONS)
     per = len(offsets_deg) * m
     by_offset = {f"{off:g}": sum(v.landed for i, (_, v) in enumerate(verdicts) if (i % per) // m == j)
                  for j, off in enumerate(offsets_deg)}
-    return {"k": k, "patch_deg": patch_deg, "drops": len(drops), "landed": len(ok),
+    per_mm = 2 * len(offsets_mm)
+    by_mm = {f"{mm:g}": sum(v.landed for i, (_, v) in enumerate(heights) if (i % per_mm) // 2 == j)
+             for j, mm in enumerate(offsets_mm)}
+    return {"k": k, "patch_deg": patch_deg, "patch_mm": patch_mm, "drops": len(drops), "landed": len(ok),
             "rollouts": int(sum(r.rollouts for r in found)), "near_tried_per_offset": m * len(ok),
-            "near_landed": by_offset}
+            "near_landed": by_offset, "heights_tried_per_offset": 2 * len(ok), "heights_landed": by_mm}
 
 
 def main() -> None:
@@ -134,6 +145,8 @@ def main() -> None:
                     "most this (deg; default 180: all)")
     ap.add_argument("--patch", type=float, nargs="+", default=[0.0], help="with --search: each search must land "
                     "the attitudes this far away in roll and pitch too (deg; several: one search each; default 0)")
+    ap.add_argument("--patch-mm", type=float, nargs="+", default=[0.0], help="with --search: each search must "
+                    "land the drop from this many mm lower and higher too (several: one search each; default 0)")
     ap.add_argument("--generations", type=int, default=30, help="with --search: CMA-ES generations (default 30)")
     ap.add_argument("--population", type=int, default=12, help="with --search: CMA-ES population (default 12)")
     ap.add_argument("--json", action="store_true")
@@ -144,7 +157,7 @@ def main() -> None:
         drops = [d for d in drops_from(f"random:{args.drops}", seed=args.seeds[0], height=args.height)
                  if float(tilt_deg(euler_quat(d.roll_deg, d.pitch_deg, d.yaw_deg))) <= args.max_tilt][:args.search]
         res = [robustness(drops, k, args.on, args.freeze, generations=args.generations, population=args.population,
-                          patch_deg=p) for p in args.patch for k in args.gains]
+                          patch_deg=p, patch_mm=mm) for mm in args.patch_mm for p in args.patch for k in args.gains]
         if args.json:
             print(json.dumps({"height_m": args.height, "seed": args.seeds[0], "rows": res}, indent=2))
             return
@@ -153,10 +166,12 @@ def main() -> None:
               f"({args.generations} × {args.population}) with the feedback on")
         for r in res:
             name = ("open loop" if r["k"] == 0 else f"k = {r['k']:+g}") + (
-                f", patch {r['patch_deg']:g}°" if r["patch_deg"] else "")
+                f", patch {r['patch_deg']:g}°" if r["patch_deg"] else "") + (
+                f", ±{r['patch_mm']:g} mm" if r["patch_mm"] else "")
             near = ", ".join(f"{o}°: {n}/{r['near_tried_per_offset']}" for o, n in r["near_landed"].items())
-            print(f"  {name:22s} landed {r['landed']}/{r['drops']} ({r['rollouts']} rollouts); "
-                  f"from attitudes away: {near}")
+            mm = ", ".join(f"±{o} mm: {n}/{r['heights_tried_per_offset']}" for o, n in r["heights_landed"].items())
+            print(f"  {name:28s} landed {r['landed']}/{r['drops']} ({r['rollouts']} rollouts); "
+                  f"from attitudes away: {near}; from heights away: {mm}")
         return
     rows = []
     for k in args.gains:

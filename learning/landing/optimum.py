@@ -155,7 +155,7 @@ def patch(d: Drop, deg: float) -> list[Drop]:
 
 def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: float = 1.0,
              outcomes: list | None = None, late_ticks: int = 0, wrap=None,
-             patch_deg: float = 0.0) -> list[tuple[float, object]]:
+             patch_deg: float = 0.0, patch_mm: float = 0.0) -> list[tuple[float, object]]:
     """Score motions ``xs`` (B, 55) on ``drops`` (B) in one batch of ``sim`` (`BatchLandingSim`), with the legs'
     touchdown compliance (`felis.controllers.landing.LandingController`); ``outcomes``: a list that gets each
     drop's `felis.learning.landing.evaluate.LandingOutcome` too.
@@ -167,20 +167,26 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
 
     ``wrap(policy, rows)``: a policy that runs around the open-loop one (``rows`` cats; e.g. a feedback,
     ``bench/landing_touchdown.py``). ``patch_deg`` d > 0: each motion is also run from the four attitudes d away
-    (`patch`), and its score and verdict are the worst of the five (with ``late_ticks``, of every combination)."""
+    (`patch`), and its score and verdict are the worst of the five (with ``late_ticks``, of every combination).
+    ``patch_mm`` m > 0: each (also) from m millimetres lower and higher, the worst of those too: from 3 m whether a
+    motion lands can turn on a millimetre of drop height (``bench/landing_height.py``)."""
     from felis.controllers.landing import LandingBatch
     from felis.learning.landing.designs import joint_speeds
     from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
 
     if late_ticks < 0:
         raise ParameterError(f"optimum: late ticks must be ≥ 0, got {late_ticks}")
-    if not patch_deg >= 0:
-        raise ParameterError(f"optimum: a patch must be ≥ 0 degrees, got {patch_deg}")
+    if not (patch_deg >= 0 and patch_mm >= 0):
+        raise ParameterError(f"optimum: a patch must be ≥ 0 degrees and ≥ 0 mm, got {patch_deg} and {patch_mm}")
     n = len(drops)
     if patch_deg > 0:  # blocks of n: the drops, then each of the four offsets
         near = [patch(d, patch_deg) for d in drops]
         drops = list(drops) + [near[i][j] for j in range(4) for i in range(n)]
         xs = np.concatenate([xs] * 5)
+    if patch_mm > 0:  # then each of those lower and higher
+        drops = list(drops) + [Drop(d.roll_deg, d.pitch_deg, d.yaw_deg, d.height_m + sign * patch_mm / 1000.0)
+                               for sign in (-1.0, 1.0) for d in drops]
+        xs = np.concatenate([xs] * 3)
     n_ticks = [int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops]
     T = max(n_ticks)
     speed = joint_speeds(sim.spec)
@@ -212,12 +218,13 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
              restarts: int = 0, seed: int = 0, workers: int | None = None,
              progress: Callable[[int, int], None] | None = None, sim=None,
              index: Sequence[int] | None = None, late_ticks: int = 0, wrap=None,
-             patch_deg: float = 0.0, warm=None, warm_radius_deg: float = WARM_RADIUS_DEG) -> list[DropOptimum]:
+             patch_deg: float = 0.0, warm=None, warm_radius_deg: float = WARM_RADIUS_DEG,
+             patch_mm: float = 0.0) -> list[DropOptimum]:
     """The per-drop optimum of every drop (module doc); ``progress(generation, drops still searching)``.
     ``index``: each drop's index in the whole list (default 0, 1, …): its CMA-ES is seeded by it, so a drop's
     result does not depend on how the list is cut. ``late_ticks``: a motion must also land started that many
-    ticks late (`evaluate`); the rollouts counted include those. ``wrap``, ``patch_deg``: as `evaluate`'s, in every
-    rollout (a drop counts as landed only if its motion lands the whole patch). ``warm``: a
+    ticks late (`evaluate`); the rollouts counted include those. ``wrap``, ``patch_deg``, ``patch_mm``: as
+    `evaluate`'s, in every rollout (a drop counts as landed only if its motion lands the whole patch). ``warm``: a
     `felis.learning.landing.library.MotionLibrary` whose motions for each drop's attitude (`MotionLibrary.near`:
     its choice, then its candidates within ``warm_radius_deg``) join that drop's seeds (module doc)."""
     import cma
@@ -244,10 +251,10 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
         best_x = np.zeros((n, DIMS))
         best_v: list = [None] * n
         used = np.zeros(n, dtype=int)
-        runs = (late_ticks + 1) * (1 + 4 * (patch_deg > 0))  # rollouts per motion tried (`evaluate`)
+        runs = (late_ticks + 1) * (1 + 4 * (patch_deg > 0)) * (1 + 2 * (patch_mm > 0))  # rollouts per motion tried
         # generation 0: every seed on every drop
         res = evaluate(sim, [d for i, d in enumerate(drops) for _ in S[i]], np.concatenate(S), late_ticks=late_ticks,
-                       wrap=wrap, patch_deg=patch_deg)
+                       wrap=wrap, patch_deg=patch_deg, patch_mm=patch_mm)
         order, at = [], 0
         for i in range(n):
             sc = np.array([r[0] for r in res[at:at + len(S[i])]])
@@ -271,7 +278,7 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
                 asks = {i: np.array(es[i].ask()) for i in active}
                 batch_drops = [drops[i] for i in active for _ in range(population)]
                 res = evaluate(sim, batch_drops, np.concatenate([asks[i] for i in active]), late_ticks=late_ticks,
-                               wrap=wrap, patch_deg=patch_deg)
+                               wrap=wrap, patch_deg=patch_deg, patch_mm=patch_mm)
                 for a, i in enumerate(active):
                     part = res[a * population:(a + 1) * population]
                     sc = np.array([r[0] for r in part])

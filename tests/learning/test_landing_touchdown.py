@@ -3,8 +3,10 @@
 import math
 
 import numpy as np
+import pytest
 from conftest import load_bench
 
+from felis.errors import ParameterError
 from felis.learning.landing.library import LibraryBatch, load_library
 from felis.learning.landing.policy import DROP_HEIGHT_M
 
@@ -87,6 +89,25 @@ def test_a_patch_scores_the_worst_of_five_attitudes():
         sim.close()
     for i in range(3):
         assert got[i][0] == min(s for s, _ in each[5 * i:5 * i + 5])
+
+
+def test_a_height_patch_scores_the_worst_of_three_heights():
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.optimum import evaluate, seeds
+    from felis.scenarios.drop import Drop
+
+    d, x = Drop(40.0, 20.0, 0.0, 3.0), seeds()[:3]
+    ups = [Drop(40.0, 20.0, 0.0, 3.0 + mm / 1000) for mm in (0.0, -2.0, 2.0)]
+    sim = BatchLandingSim()
+    try:
+        got = evaluate(sim, [d] * 3, x, patch_mm=2.0)
+        each = evaluate(sim, ups * 3, np.repeat(x, 3, axis=0))
+        with pytest.raises(ParameterError, match="≥ 0 mm"):
+            evaluate(sim, [d], x[:1], patch_mm=-1.0)
+    finally:
+        sim.close()
+    for i in range(3):
+        assert got[i][0] == min(s for s, _ in each[3 * i:3 * i + 3])
 
 
 def test_patch_through_the_long_run_and_the_cli(tmp_path):
