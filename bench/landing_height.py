@@ -9,6 +9,11 @@ from ``--mm`` millimetres above and below it, and prints how many land at the ex
 average over the heights tried, and how many land at every one of them.
 
     python bench/landing_height.py [--height 3] [--ceiling RESULTS.json] [--mm 3] [--drops N] [--json]
+    python bench/landing_height.py --design rubber-paw [--height 3]   # the design study's optimum, per design
+
+``--design NAME``: instead, the design study's per-drop optimum (searched from scratch, on the same drops) for that
+design (`learning/weights/landing_design.jsonl`, `bench/landing_design.py`), run on that design's cat: how much a
+paw or servo change makes a landing hold over the millimetres (the library is the described cat's only).
 
 The default ceiling is the shipped results file for ``random:100 --seed 0`` at that height
 (``learning/weights/landing_optimum_warm-<h>m.json``); its ``seed`` and heights say which drops to run. Nothing
@@ -55,6 +60,18 @@ def read_ceiling(path: Path, height_m: float) -> tuple[list[Drop], np.ndarray, n
     return drops, np.array([r["motion_x"] for r in rows], dtype=float), np.array([bool(r["landed"]) for r in rows])
 
 
+def read_design(path: Path, design: str, height_m: float) -> tuple[list[Drop], np.ndarray, np.ndarray]:
+    """(drops, motions, landed) of the design study's rows for ``design`` from ``height_m``, in drop order."""
+    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    mine = sorted((r for r in rows if r.get("design") == design and math.isclose(r["height_m"], height_m)),
+                  key=lambda r: r["i"])
+    if not mine:
+        names = sorted({r.get("design") for r in rows})
+        raise ParameterError(f"{path}: no rows for design {design!r} from {height_m:g} m (designs: {', '.join(names)})")
+    drops = [Drop(r["roll_deg"], r["pitch_deg"], r["yaw_deg"], r["height_m"]) for r in mine]
+    return drops, np.array([r["motion_x"] for r in mine], dtype=float), np.array([bool(r["landed"]) for r in mine])
+
+
 def landed_at(sim, drops: list[Drop], xs: np.ndarray, offsets_mm: list[int]) -> np.ndarray:
     """(N, len(offsets_mm)) bool: motion ``xs[i]`` lands drop i dropped from its height + each offset."""
     from felis.learning.landing.optimum import evaluate
@@ -79,6 +96,7 @@ def main() -> None:
     ap.add_argument("--ceiling", type=Path, help="a --policy optimum --json results file (default: the shipped "
                     "seed-0 file for --height)")
     ap.add_argument("--library", type=Path, default=DEFAULT_LIBRARY)
+    ap.add_argument("--design", help="instead: the design study's optimum for this design, on its own cat")
     ap.add_argument("--mm", type=int, default=3, help="heights from −MM to +MM mm in 1 mm steps (default 3)")
     ap.add_argument("--drops", type=int, help="only the first N drops")
     ap.add_argument("--json", action="store_true")
@@ -86,32 +104,49 @@ def main() -> None:
     if args.mm < 1:
         raise SystemExit("landing_height: --mm must be ≥ 1")
     try:
-        drops, ceil_x, ceil_landed = read_ceiling(args.ceiling or ceiling_file(args.height), args.height)
-        lib = load_library(args.library)
+        if args.design:
+            from felis.learning.landing.designs import design_sim, get_design
+
+            get_design(args.design)
+            drops, ceil_x, ceil_landed = read_design(WEIGHTS / "landing_design.jsonl", args.design, args.height)
+        else:
+            drops, ceil_x, ceil_landed = read_ceiling(args.ceiling or ceiling_file(args.height), args.height)
+            lib = load_library(args.library)
     except (OSError, ValueError, ParameterError) as e:
         raise SystemExit(f"landing_height: {e}") from None
     n = len(drops) if args.drops is None else max(1, min(args.drops, len(drops)))
     drops, ceil_x, ceil_landed = drops[:n], ceil_x[:n], ceil_landed[:n]
-    lib_x = np.array([lib.choose(drop_up(d), d.height_m) for d in drops])
     offsets = list(range(-args.mm, args.mm + 1))
-    sim = _worker_sim()
-    rows = {}
-    for name, xs in (("ceiling", ceil_x), ("library", lib_x)):
-        rows[name] = summary(landed_at(sim, drops, xs, offsets), offsets)
-    rows["ceiling"]["file_says_landed"] = int(ceil_landed.sum())
-    c, b = rows["ceiling"], rows["library"]
-    ratios = {"at_height": round(b["landed_at_height"] / max(c["landed_at_height"], 1), 3),
-              "mean_over_heights": round(b["mean_over_heights"] / max(c["mean_over_heights"], 1e-9), 3)}
-    out = {"height_m": args.height, "drops": n, "offsets_mm": offsets, **rows, "library_over_ceiling": ratios}
+    sim = design_sim(args.design) if args.design else _worker_sim()
+    first = "optimum" if args.design else "ceiling"  # the design study's, from scratch; or the warm-started one
+    policies = [(first, ceil_x)]
+    if not args.design:
+        policies.append(("library", np.array([lib.choose(drop_up(d), d.height_m) for d in drops])))
+    rows = {name: summary(landed_at(sim, drops, xs, offsets), offsets) for name, xs in policies}
+    if args.design:
+        sim.close()
+    rows[first]["file_says_landed"] = int(ceil_landed.sum())
+    out = {"height_m": args.height, "drops": n, "offsets_mm": offsets, **({"design": args.design} if args.design
+                                                                          else {}), **rows}
+    if not args.design:
+        c, b = rows["ceiling"], rows["library"]
+        out["library_over_ceiling"] = {
+            "at_height": round(b["landed_at_height"] / max(c["landed_at_height"], 1), 3),
+            "mean_over_heights": round(b["mean_over_heights"] / max(c["mean_over_heights"], 1e-9), 3)}
     if args.json:
         print(json.dumps(out, indent=1))
         return
-    print(f"{n} drops from {args.height:g} m, each also from ±1…{args.mm} mm")
-    print(f"{'':10} {'at h':>6} {'mean over heights':>18} {'at every height':>16}")
-    for name in ("ceiling", "library"):
+    what = f"design {args.design}: the design study's optimum" if args.design else "the ceiling and the library"
+    print(f"{n} drops from {args.height:g} m, each also from ±1…{args.mm} mm; {what}")
+    print(f"{'':10} {'at h':>6} {'mean over heights':>18} {'at every height':>16}  by offset (mm)")
+    for name, _ in policies:
         r = rows[name]
-        print(f"{name:10} {r['landed_at_height']:>6} {r['mean_over_heights']:>18} {r['landed_at_every_height']:>16}")
-    print(f"library / ceiling: {ratios['at_height']} at h, {ratios['mean_over_heights']} on average over the heights")
+        print(f"{name:10} {r['landed_at_height']:>6} {r['mean_over_heights']:>18} {r['landed_at_every_height']:>16}  "
+              + " ".join(f"{k}:{v}" for k, v in r["by_offset_mm"].items()))
+    if not args.design:
+        ratios = out["library_over_ceiling"]
+        print(f"library / ceiling: {ratios['at_height']} at h, {ratios['mean_over_heights']} on average over the "
+              "heights")
 
 
 if __name__ == "__main__":

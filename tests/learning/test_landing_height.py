@@ -42,3 +42,16 @@ def test_a_file_that_is_not_an_optimum_results_file_is_one_line(tmp_path):
                        capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode != 0
     assert r.stderr.strip().count("\n") == 0 and "not a per-drop optimum's results" in r.stderr
+
+
+def test_a_design_of_the_study_runs_its_own_optimum_on_its_own_cat():
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--design", "rubber-paw",
+                        "--drops", "4", "--mm", "1", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["design"] == "rubber-paw" and "library" not in out and out["drops"] == 4
+    o = out["optimum"]
+    assert o["landed_at_height"] == o["by_offset_mm"]["0"] <= 4 and o["landed_at_every_height"] <= o["landed_at_height"]
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--design", "nope"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode != 0 and r.stderr.strip().count("\n") == 0 and "unknown design 'nope'" in r.stderr
