@@ -160,7 +160,8 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--warm-start", nargs="?", const="library", metavar="LIBRARY",
                    help="optimum: each drop's search also starts from a motion library's motions for its attitude "
                    "(its choice and every motion made within 30°; LIBRARY: a file from `felis train "
-                   "landing-library`, default the shipped one): the ceiling the library is read against")
+                   "landing-library`, default the shipped one): the ceiling the library is read against (with "
+                   "--design, on that design's cat)")
     e.add_argument("--motions", type=Path, metavar="DIR",
                    help="optimum: write each drop's best motion to DIR/drop-<i>.json, a policy `felis run landing "
                    "--policy` runs (open loop, for that drop)")
@@ -491,8 +492,6 @@ def _eval_optimum(args, drops) -> int:
         from felis.learning.landing.library import DEFAULT_LIBRARY
 
         warm = str(DEFAULT_LIBRARY)
-    if warm is not None and args.design != "cat":
-        raise ParameterError("--warm-start: the library's motions are the described cat's; not with --design")
     quiet = args.json or not sys.stderr.isatty()
     bar, step = output.progress(len(drops), "drops", quiet)
     with bar:

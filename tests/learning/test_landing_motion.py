@@ -126,7 +126,7 @@ def test_the_hard_drop_lands_on_mujoco_and_through_the_virtual_bus_with_the_libr
 def test_optimum_warm_start_through_the_command(tmp_path):
     """`felis eval landing --policy optimum --warm-start LIBRARY`: a start tilted 120° that no generic seed lands
     lands in generation 0; the checkpoint's settings name the library and its digest, so a changed file is not
-    resumed; misuse is one line each."""
+    resumed; another design searches from the library too; misuse is one line each."""
     import shutil
 
     from felis.learning.landing.library import DEFAULT_LIBRARY
@@ -149,9 +149,13 @@ def test_optimum_warm_start_through_the_command(tmp_path):
     lib.write_text(json.dumps(doc))
     again = _felis(*base, "--warm-start", str(lib), "--resume")
     assert again.returncode != 0 and "other drops or settings" in again.stderr, again.stderr
+    # another design's search starts from the described cat's motions too, each judged on that design's cat
+    other = _felis(*base[:-1], str(tmp_path / "ck2"), "--warm-start", str(lib), "--design", "rubber-paw")
+    assert other.returncode == 0, other.stderr
+    res = json.loads(other.stdout)
+    assert res["design"] == "rubber-paw" and res["search"]["warm_start"] == str(lib) and res["total"] == 1
     for argv, says in (((*base[:2], "--policy", "library", *base[4:6], "--warm-start"),
                         "--warm-start starts the optimum's search"),
-                       ((*base, "--warm-start", "--design", "6V"), "not with --design"),
                        ((*base, "--warm-start", str(tmp_path / "none.json")), "none.json")):
         bad = _felis(*argv)
         assert bad.returncode != 0 and says in bad.stderr, bad.stderr
