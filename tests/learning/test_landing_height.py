@@ -6,7 +6,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import load_bench
+
+from felis.errors import ParameterError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -55,3 +58,44 @@ def test_a_design_of_the_study_runs_its_own_optimum_on_its_own_cat():
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--design", "nope"],
                        capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode != 0 and r.stderr.strip().count("\n") == 0 and "unknown design 'nope'" in r.stderr
+
+
+def test_the_band_ceiling_is_the_candidate_that_lands_the_most_heights_as_if_each_were_tried_at_every_one():
+    # the branch and bound skips rollouts, never the best: against every candidate run at every height
+    from felis.learning.landing.library import DEFAULT_LIBRARY, drop_up, load_library
+    from felis.learning.landing.optimum import _worker_sim
+    from felis.scenarios.drop import random_drops
+
+    bench = load_bench("landing_height")
+    lib = load_library(DEFAULT_LIBRARY)
+    drops = random_drops(3, seed=0, heights=1.0)
+    cands = [lib.near(drop_up(d), 1.0)[:5] for d in drops]
+    offsets = [-2, -1, 0, 1, 2]
+    sim = _worker_sim("cat")
+    calls = []
+    share, best, at_h = bench.band_ceiling(sim, drops, cands, offsets, chunk=7,
+                                           progress=lambda done, total: calls.append((done, total)))
+    full = [bench.landed_at(sim, [d] * len(c), c, offsets) for d, c in zip(drops, cands, strict=True)]
+    for i, R in enumerate(full):
+        assert share[i] == R.sum(axis=1).max() / len(offsets)
+        assert R[best[i]].sum() == R.sum(axis=1).max()
+        assert at_h[i] == R[:, offsets.index(0)].any()
+    assert calls and calls[-1][0] == calls[-1][1] <= sum(len(c) for c in cands) * len(offsets)
+    assert any(0 < s for s in share)  # a case where something lands
+    with pytest.raises(ParameterError, match="must include the drop height"):
+        bench.band_ceiling(sim, drops, cands, [-1, 1])
+
+
+def test_band_reads_the_ceiling_over_the_heights_and_the_library_is_at_most_level_with_it():
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--band", "--height", "1",
+                        "--drops", "3", "--mm", "1", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    b = out["band_ceiling"]
+    assert b["candidates"] > 3 and b["landed_at_every_height"] <= 3
+    # the library's choice is one of the band's candidates: it can tie, never beat it
+    assert out["library"]["mean_over_heights"] <= b["mean_over_heights"] <= 3
+    assert b["some_candidate_lands_at_height"] >= out["ceiling"]["landed_at_height"]
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--band", "--design", "rubber-paw"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode != 0 and r.stderr.strip().count("\n") == 0 and "not with --design" in r.stderr
