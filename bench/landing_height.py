@@ -11,6 +11,8 @@ average over the heights tried, and how many land at every one of them.
     python bench/landing_height.py [--height 3] [--ceiling RESULTS.json] [--mm 3] [--drops N] [--json]
     python bench/landing_height.py --design rubber-paw [--height 3]   # the design study's optimum, per design
     python bench/landing_height.py --band [--height 3] [--ceiling RESULTS.json]   # the ceiling over the band
+    python bench/landing_height.py --scan 4 [--height 3]   # why: the library's choice over ±12 mm, 0.5 mm apart
+    python bench/landing_height.py --penetration [--height 3]   # and the paw's penetration, by physics step
 
 ``--design NAME``: instead, the design study's per-drop optimum (searched from scratch, on the same drops) for that
 design (`learning/weights/landing_design.jsonl`, `bench/landing_design.py`), run on that design's cat: how much a
@@ -27,6 +29,14 @@ on average over the heights against the library's, and how many drops some of th
 height (the file's own among them). About 20 min on 2 cores for 100 drops from 3 m (17 000 motions from 3 heights
 each, then the other heights for those that can still win), 12 min from 1 m.
 
+``--scan N``: why a millimetre decides. The library's choice for each of the first N drops, run from every 0.5 mm
+of h − 12 … h + 12 mm: from 3 m the landings come and go with a period of about √(2gh)·Δt, the distance the cat
+falls in one physics step (7.7 mm at 3 m and Δt = 1 ms; `period_mm` finds it). A physical landing has no such
+period: it is the step's phase at the first contact, how deep the foot is in the floor when the contact is first
+seen. ``--penetration``: the cat dropped level with its joints held, from h and every 1 mm up to the next step's
+fall, at the model's Δt and at a quarter of it (plain `mujoco.mj_step`): the foot's deepest penetration into the
+floor and whether a leg link (its capsule ends 11 mm above the bottom of the foot) touches the floor.
+
 The default ceiling is the shipped results file for ``random:100 --seed 0`` at that height
 (``learning/weights/landing_optimum_warm-<h>m.json``); its ``seed`` and heights say which drops to run. Nothing
 is random: each (drop, motion, height) is simulated once, by `felis.learning.landing.optimum.evaluate`.
@@ -40,6 +50,7 @@ import json
 import math
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -148,6 +159,55 @@ def _offset(d: Drop, mm: int) -> Drop:
     return Drop(d.roll_deg, d.pitch_deg, d.yaw_deg, d.height_m + mm / 1000.0)
 
 
+def period_mm(pattern: np.ndarray, step_mm: float, min_mm: float = 3.0) -> float | None:
+    """The period of a landed/not-landed ``pattern`` sampled every ``step_mm`` (mm): the shift (≥ ``min_mm``, at most
+    half the pattern) at which it agrees with itself most; None where it never changes."""
+    p = np.asarray(pattern, dtype=bool)
+    if p.all() or not p.any():
+        return None
+    shifts = range(max(1, math.ceil(min_mm / step_mm - 1e-9)), len(p) // 2 + 1)
+    agree = [float(np.mean(p[k:] == p[:-k])) for k in shifts]
+    return float(list(shifts)[int(np.argmax(agree))] * step_mm)
+
+
+def penetration(height_m: float, offsets_mm, timestep: float) -> list[tuple[float, float, float | None]]:
+    """The described cat dropped level (its lowest point at ``height_m`` + each offset), joints held at the release
+    pose, plain `mujoco.mj_step` at ``timestep`` s: (offset mm, the feet's deepest penetration into the floor in mm,
+    ms from the first foot contact to a leg link's first contact, or None) over the 50 ms after touchdown."""
+    import mujoco
+
+    from felis.sim.robot import load_model, model_path
+    from felis.spec import load_spec
+
+    m = load_model(model_path(load_spec("cat")))
+    m.opt.timestep = float(timestep)
+    d = mujoco.MjData(m)
+    gid = {n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ("floor", *(
+        f"{leg}_{part}" for leg in ("fl", "fr", "hl", "hr") for part in ("foot", "leg")))}
+    feet = {gid[n] for n in gid if n.endswith("_foot")}
+    links = {gid[n] for n in gid if n.endswith("_leg")}
+    out = []
+    for mm in offsets_mm:
+        mujoco.mj_resetData(m, d)
+        mujoco.mj_forward(m, d)
+        low = min(float(d.geom_xpos[g][2] - m.geom_size[g][0]) for g in feet)
+        d.qpos[2] += height_m + mm / 1000.0 - low
+        mujoco.mj_forward(m, d)
+        deepest, t_foot, t_link = 0.0, None, None
+        while d.time < 2.0 and (t_foot is None or d.time < t_foot + 0.05):
+            mujoco.mj_step(m, d)
+            for c in d.contact[:d.ncon]:
+                g = c.geom2 if c.geom1 == gid["floor"] else c.geom1
+                if g in feet and c.dist < 0:
+                    deepest = min(deepest, float(c.dist))
+                    t_foot = d.time if t_foot is None else t_foot
+                elif g in links and c.dist < 0 and t_link is None:
+                    t_link = d.time
+        lag = None if t_link is None or t_foot is None else (t_link - t_foot) * 1000.0
+        out.append((float(mm), -deepest * 1000.0, lag))
+    return out
+
+
 def summary(R: np.ndarray, offsets_mm: list[int]) -> dict:
     at = R[:, offsets_mm.index(0)]
     return {"landed_at_height": int(at.sum()), "mean_over_heights": round(float(R.mean(axis=1).sum()), 1),
@@ -167,12 +227,22 @@ def main() -> None:
     ap.add_argument("--mm", type=int, default=3, help="heights from −MM to +MM mm in 1 mm steps (default 3)")
     ap.add_argument("--drops", type=int, help="only the first N drops")
     ap.add_argument("--band", action="store_true", help="also the ceiling read over the band of heights (module doc)")
+    ap.add_argument("--scan", type=int, metavar="N", help="instead: the library's choice for the first N drops from "
+                    "every 0.5 mm of ±12 mm, and the period of its landings (module doc)")
+    ap.add_argument("--penetration", action="store_true", help="instead: a level drop's paw penetration and leg-link "
+                    "contact by the height's phase in a physics step, at the model's step and a quarter of it")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.band and args.design:
         raise SystemExit("landing_height: --band reads the library's motions, on the described cat: not with --design")
     if args.mm < 1:
         raise SystemExit("landing_height: --mm must be ≥ 1")
+    if args.penetration:
+        return _penetration(args)
+    if args.scan is not None:
+        if args.scan < 1:
+            raise SystemExit("landing_height: --scan needs at least 1 drop")
+        args.drops = args.scan
     try:
         if args.design:
             from felis.learning.landing.designs import get_design
@@ -188,6 +258,8 @@ def main() -> None:
     drops, ceil_x, ceil_landed = drops[:n], ceil_x[:n], ceil_landed[:n]
     offsets = list(range(-args.mm, args.mm + 1))
     sim = _worker_sim(args.design or "cat")
+    if args.scan is not None:
+        return _scan(args, sim, drops, load_library(args.library))
     first = "optimum" if args.design else "ceiling"  # the design study's, from scratch; or the warm-started one
     policies = [(first, ceil_x)]
     if not args.design:
@@ -240,6 +312,54 @@ def main() -> None:
               f"{b['mean_over_heights']} on average over the heights, {b['landed_at_every_height']} at every height; "
               f"some motion lands {b['some_candidate_lands_at_height']} at h")
         print(f"library / band ceiling: {out['library_over_band_ceiling']} on average over the heights")
+
+
+SCAN_STEP_MM, SCAN_MM = 0.5, 12.0
+
+
+def _scan(args, sim, drops: list[Drop], lib) -> None:
+    from felis.rotations import G
+    from felis.sim.batch import PHYSICS_PER_TICK
+
+    offsets = np.round(np.arange(-SCAN_MM, SCAN_MM + 1e-9, SCAN_STEP_MM), 3)
+    xs = np.array([lib.choose(drop_up(d), d.height_m) for d in drops])
+    dt = 1.0 / (100.0 * PHYSICS_PER_TICK)
+    fall_mm = math.sqrt(2.0 * G * args.height) * dt * 1000.0
+    rows = []
+    for d, x in zip(drops, xs, strict=True):
+        R = landed_at(sim, [d], x[None], list(offsets))[0]
+        rows.append({"drop": asdict(d), "landed": R.astype(int).tolist(),
+                     "period_mm": period_mm(R, SCAN_STEP_MM)})
+    if args.json:
+        print(json.dumps({"height_m": args.height, "offsets_mm": offsets.tolist(), "fall_per_step_mm": fall_mm,
+                          "drops": rows}, indent=1))
+        return
+    print(f"the library's choice from h {-SCAN_MM:+g} … {SCAN_MM:+g} mm every {SCAN_STEP_MM:g} mm ('#' landed, "
+          f"'|' at h); one physics step's fall at touchdown: {fall_mm:.1f} mm")
+    centre = int(np.flatnonzero(offsets == 0)[0])
+    for i, r in enumerate(rows):
+        line = "".join("#" if v else "." for v in r["landed"])
+        period = "none" if r["period_mm"] is None else f"{r['period_mm']:g} mm"
+        print(f"drop {i:3d} {line[:centre]}|{line[centre]}|{line[centre + 1:]}  period {period}")
+
+
+def _penetration(args) -> None:
+    from felis.rotations import G
+    from felis.sim.batch import PHYSICS_PER_TICK
+
+    dt = 1.0 / (100.0 * PHYSICS_PER_TICK)
+    fall_mm = math.sqrt(2.0 * G * args.height) * dt * 1000.0
+    offsets = list(range(0, math.ceil(fall_mm) + 1))
+    res = {f"{step * 1000:g}": penetration(args.height, offsets, step) for step in (dt, dt / 4)}
+    if args.json:
+        print(json.dumps({"height_m": args.height, "fall_per_step_mm": fall_mm,
+                          "by_timestep_ms": {k: [{"offset_mm": o, "deepest_mm": round(p, 2), "link_after_ms": lag}
+                                                 for o, p, lag in v] for k, v in res.items()}}, indent=1))
+        return
+    print(f"a level drop from {args.height:g} m + offset, joints held; one physics step's fall: {fall_mm:.1f} mm")
+    for k, v in res.items():
+        print(f"Δt {k} ms: " + ", ".join(f"+{o:g} mm {p:.1f}" + ("" if lag is None else f" (link {lag:.1f} ms)")
+                                          for o, p, lag in v))
 
 
 if __name__ == "__main__":
