@@ -13,6 +13,7 @@ average over the heights tried, and how many land at every one of them.
     python bench/landing_height.py --band [--height 3] [--ceiling RESULTS.json]   # the ceiling over the band
     python bench/landing_height.py --scan 4 [--height 3]   # why: the library's choice over ±12 mm, 0.5 mm apart
     python bench/landing_height.py --penetration [--height 3]   # and the paw's penetration, by physics step
+    python bench/landing_height.py --timesteps 1 0.5 0.25 [--height 3] [--ceiling FILE] [--on rubber-paw]
 
 ``--design NAME``: instead, the design study's per-drop optimum (searched from scratch, on the same drops) for that
 design (`learning/weights/landing_design.jsonl`, `bench/landing_design.py`), run on that design's cat: how much a
@@ -36,6 +37,11 @@ period: it is the step's phase at the first contact, how deep the foot is in the
 seen. ``--penetration``: the cat dropped level with its joints held, from h and every 1 mm up to the next step's
 fall, at the model's Δt and at a quarter of it (plain `mujoco.mj_step`): the foot's deepest penetration into the
 floor and whether a leg link (its capsule ends 11 mm above the bottom of the foot) touches the floor.
+
+``--timesteps MS …``: the library's choice and the ceiling file's motions run at each physics step (ms; the
+model's is 1 ms, a control tick is 10 ms and runs as many steps as fit) on the described cat or ``--on DESIGN``
+(give a ceiling searched on that design): which landings are the cat's and which the step's. A result that
+holds as the step shrinks is converged; one that goes is numerical.
 
 The default ceiling is the shipped results file for ``random:100 --seed 0`` at that height
 (``learning/weights/landing_optimum_warm-<h>m.json``); its ``seed`` and heights say which drops to run. Nothing
@@ -229,6 +235,9 @@ def main() -> None:
     ap.add_argument("--band", action="store_true", help="also the ceiling read over the band of heights (module doc)")
     ap.add_argument("--scan", type=int, metavar="N", help="instead: the library's choice for the first N drops from "
                     "every 0.5 mm of ±12 mm, and the period of its landings (module doc)")
+    ap.add_argument("--timesteps", type=float, nargs="+", metavar="MS", help="instead: the library's choice and "
+                    "the ceiling's motions at each physics step (ms), on the described cat or --on DESIGN")
+    ap.add_argument("--on", default="cat", metavar="DESIGN", help="--timesteps: the design study's cat to run on")
     ap.add_argument("--penetration", action="store_true", help="instead: a level drop's paw penetration and leg-link "
                     "contact by the height's phase in a physics step, at the model's step and a quarter of it")
     ap.add_argument("--json", action="store_true")
@@ -239,6 +248,8 @@ def main() -> None:
         raise SystemExit("landing_height: --mm must be ≥ 1")
     if args.penetration:
         return _penetration(args)
+    if args.timesteps is not None and (args.design or args.band or args.scan is not None):
+        raise SystemExit("landing_height: --timesteps is a study of its own: not with --design, --band or --scan")
     if args.scan is not None:
         if args.scan < 1:
             raise SystemExit("landing_height: --scan needs at least 1 drop")
@@ -257,6 +268,8 @@ def main() -> None:
     n = len(drops) if args.drops is None else max(1, min(args.drops, len(drops)))
     drops, ceil_x, ceil_landed = drops[:n], ceil_x[:n], ceil_landed[:n]
     offsets = list(range(-args.mm, args.mm + 1))
+    if args.timesteps is not None:
+        return _timesteps(args, drops, ceil_x, ceil_landed, lib)
     sim = _worker_sim(args.design or "cat")
     if args.scan is not None:
         return _scan(args, sim, drops, load_library(args.library))
@@ -312,6 +325,37 @@ def main() -> None:
               f"{b['mean_over_heights']} on average over the heights, {b['landed_at_every_height']} at every height; "
               f"some motion lands {b['some_candidate_lands_at_height']} at h")
         print(f"library / band ceiling: {out['library_over_band_ceiling']} on average over the heights")
+
+
+def _timesteps(args, drops: list[Drop], ceil_x: np.ndarray, ceil_landed: np.ndarray, lib) -> None:
+    from felis.learning.landing.designs import design_sim, get_design
+
+    try:
+        get_design(args.on)
+        for ms in args.timesteps:
+            if not (math.isfinite(ms) and 0 < ms <= 10 and abs(10 / ms - round(10 / ms)) < 1e-6):
+                raise ParameterError(f"a physics step must divide the 10 ms tick, got {ms:g} ms")
+    except ParameterError as e:
+        raise SystemExit(f"landing_height: {e}") from None
+    from felis.learning.landing.optimum import evaluate
+
+    lib_x = np.array([lib.choose(drop_up(d), d.height_m) for d in drops])
+    rows = []
+    for ms in args.timesteps:
+        sim = design_sim(args.on, timestep=ms / 1000.0)
+        try:
+            got = [int(sum(v.landed for _, v in evaluate(sim, drops, xs))) for xs in (lib_x, ceil_x)]
+        finally:
+            sim.close()
+        rows.append({"timestep_ms": ms, "library": got[0], "ceiling": got[1]})
+    out = {"height_m": args.height, "drops": len(drops), "on": args.on, "file_says_landed": int(ceil_landed.sum()),
+           "by_timestep": rows}
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return
+    print(f"{len(drops)} drops from {args.height:g} m on {args.on}; the ceiling's file says {out['file_says_landed']}")
+    for r in rows:
+        print(f"physics step {r['timestep_ms']:g} ms: library {r['library']}, the ceiling's motions {r['ceiling']}")
 
 
 SCAN_STEP_MM, SCAN_MM = 0.5, 12.0

@@ -33,6 +33,7 @@ Threads: ``nthread`` (default: every core); results do not depend on it (each ca
 from __future__ import annotations
 
 import copy
+import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -105,10 +106,14 @@ class DropBatch:
         nthread: rollout threads (default: every core).
         safety: the safety layer's configuration (`felis.loop.run_loop`'s default when None).
         sensors: an `MjSpec` edit adding more sensors for ``record`` (e.g. the landing features' body points).
+        timestep: the physics step in s (default the model's, 1 ms): each control tick runs as many steps as
+            fit (a whole number; `bench/landing_height.py`: from 3 m the impact's verdict depends on the
+            step's phase at the first contact, and a finer step shows by how much).
     """
 
     def __init__(self, spec: RobotSpec, *, servo: dict[str, ServoParams] | None = None, nthread: int | None = None,
-                 safety: SafetyConfig | None = None, sensors: Callable[[mujoco.MjSpec], None] | None = None):
+                 safety: SafetyConfig | None = None, sensors: Callable[[mujoco.MjSpec], None] | None = None,
+                 timestep: float | None = None):
         self.spec = spec
         verdict = verdict_sensors(spec)
 
@@ -121,6 +126,10 @@ class DropBatch:
         self.robot.connect()
         self.robot.arm()  # gains on, as in every episode
         m = self.model = self.robot.model
+        if timestep is not None:
+            if not (math.isfinite(timestep) and 0 < timestep <= 0.01):
+                raise ParameterError(f"a physics step must be within (0, 0.01] s, got {timestep}")
+            m.opt.timestep = float(timestep)
         if self.robot.free_joint is None:
             raise ParameterError(f"{spec.name} is fixed to the world: only a free-floating robot can be dropped")
         self.nthread = max(1, int(nthread or os.cpu_count() or 1))
@@ -198,11 +207,13 @@ class DropBatch:
         ``controller``: ``reset(t (B,), q (B, n))`` then, each tick, ``controller(t, q, quat, h) -> (B, n)``
         position targets (q in encoder ticks, quat (w, x, y, z) from the IMU, h the waist height). Each cat
         runs ``round((fall_time + margin_s) · rate_hz)`` ticks (as `LandingSim`) unless ``ticks`` gives them.
-        ``record(k, states (B, 10, nstate), sensordata (B, 10, nsens), active)``: called after each tick's
-        physics with the rows of the cats still running (``active``: their indices), e.g. to record motion."""
-        if abs(rate_hz * self.model.opt.timestep * PHYSICS_PER_TICK - 1.0) > 1e-9:
-            raise ParameterError(f"the batch runs {PHYSICS_PER_TICK} physics steps per tick: rate {rate_hz} Hz "
-                                 f"needs a {1 / (rate_hz * PHYSICS_PER_TICK):g} s timestep")
+        ``record(k, states (B, S, nstate), sensordata (B, S, nsens), active)`` (S: physics steps a tick, 10 at the
+        model's 1 ms): called after each tick's physics with the rows of the cats still running (``active``: their
+        indices), e.g. to record motion."""
+        per = int(round(1.0 / (rate_hz * self.model.opt.timestep)))
+        if per < 1 or abs(rate_hz * self.model.opt.timestep * per - 1.0) > 1e-9:
+            raise ParameterError(f"the batch runs whole physics steps per tick: rate {rate_hz} Hz does not divide "
+                                 f"into {self.model.opt.timestep:g} s steps")
         B = len(drops)
         if B == 0:
             return []
@@ -217,7 +228,7 @@ class DropBatch:
         last = np.clip(q, self.safety.lower, self.safety.upper)
         lower, upper = self.spec.lower, self.spec.upper
         # the verdict's rows, per cat: touchdown step index into the recorded arrays, and the arrays
-        steps = int(n_ticks.max()) * PHYSICS_PER_TICK
+        steps = int(n_ticks.max()) * per
         up = np.full((B, steps), np.nan)
         waist = np.full((B, steps), np.nan)
         tt = np.full((B, steps), np.nan)
@@ -226,9 +237,9 @@ class DropBatch:
         peak = np.zeros(B)
         final_up = sens[:, self._up].copy()
         diverged = np.zeros(B, dtype=bool)
-        ctrl = np.zeros((B, PHYSICS_PER_TICK, m.nu))
-        out_state = np.empty((B, PHYSICS_PER_TICK, self.nstate))
-        out_sens = np.empty((B, PHYSICS_PER_TICK, m.nsensordata))
+        ctrl = np.zeros((B, per, m.nu))
+        out_state = np.empty((B, per, self.nstate))
+        out_sens = np.empty((B, per, m.nsensordata))
         active = np.arange(B)
         h = sens[:, self._waist].copy()
         for k in range(int(n_ticks.max())):
@@ -252,7 +263,7 @@ class DropBatch:
                 if len(self._models) != na:
                     self._models = [m] * na
                 models = self._models
-            self._pool.rollout(models, self._datas, np.ascontiguousarray(state[a]), c, nstep=PHYSICS_PER_TICK,
+            self._pool.rollout(models, self._datas, np.ascontiguousarray(state[a]), c, nstep=per,
                                state=st, sensordata=sd, skip_checks=True,
                                chunk_size=max(1, na // (self.nthread * 4)))
             # divergence: MuJoCo resets a cat whose state went non-finite (its time goes back)
@@ -260,8 +271,8 @@ class DropBatch:
             bad = (np.diff(np.concatenate([t[a, None], tnow], axis=1), axis=1) <= 0).any(axis=1)
             bad |= ~np.isfinite(st[:, -1, :]).all(axis=1)
             diverged[a[bad]] = True
-            lo = k * PHYSICS_PER_TICK
-            sl = slice(lo, lo + PHYSICS_PER_TICK)
+            lo = k * per
+            sl = slice(lo, lo + per)
             tt[a, sl] = tnow
             up[a, sl] = sd[:, :, self._up]
             waist[a, sl] = sd[:, :, self._waist]

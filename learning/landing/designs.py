@@ -125,13 +125,14 @@ def paw_edit(tau: float) -> Callable:
     return edit
 
 
-def design_sim(design: Design | str, *, nthread: int | None = None):
-    """`BatchLandingSim` of ``design`` (a `Design` or a name in `DESIGNS`)."""
+def design_sim(design: Design | str, *, nthread: int | None = None, timestep: float | None = None):
+    """`BatchLandingSim` of ``design`` (a `Design` or a name in `DESIGNS`); ``timestep``: its physics step (s;
+    default the model's)."""
     from felis.learning.landing.evaluate import BatchLandingSim
 
     d = get_design(design) if isinstance(design, str) else design
     spec, servo, edit = design_robot(d)
-    return BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=edit)
+    return BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=edit, timestep=timestep)
 
 
 def joint_speeds(spec: RobotSpec) -> float | np.ndarray:

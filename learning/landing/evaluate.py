@@ -315,11 +315,12 @@ class BatchLandingSim:
     """Drops in batches (`felis.sim.batch.DropBatch`, every core by default): what `run_drops`, training and
     the optimum use. The standing waist height is measured once, as `LandingSim` does."""
 
-    def __init__(self, robot: str = "cat", *, nthread: int | None = None, servo=None, spec=None, sensors=None):
+    def __init__(self, robot: str = "cat", *, nthread: int | None = None, servo=None, spec=None, sensors=None,
+                 timestep: float | None = None):
         from felis.sim.batch import DropBatch
 
         self.spec = spec or load_spec(robot)
-        self.batch = DropBatch(self.spec, servo=servo, nthread=nthread, sensors=sensors)
+        self.batch = DropBatch(self.spec, servo=servo, nthread=nthread, sensors=sensors, timestep=timestep)
         self.standing_waist_m = standing_waist_height(self.batch.robot)
 
     def run(self, drops: Sequence[Drop], controller, *, policy: str = "", **kw) -> list[LandingOutcome]:

@@ -130,3 +130,18 @@ def test_a_level_drops_paw_penetration_depends_on_the_step_phase_at_the_model_st
     assert max(coarse) - min(coarse) > 2 * (max(fine) - min(fine))
     assert min(fine) > 5.0  # the paw sinks deeper than a 5 mm pad is thick
     assert any(row["link_after_ms"] is not None for row in by["1"])  # in some phases a leg link reaches the floor
+
+
+def test_from_3_m_the_described_cats_landings_go_as_the_physics_step_shrinks():
+    # the library's choice and the ceiling's motions on seed 0's first 20 drops from 3 m, at the model's 1 ms step
+    # and at 0.25 ms: at 1 ms the ceiling lands what its file says; at 0.25 ms both lose more than half of it
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--timesteps", "1", "0.25",
+                        "--drops", "20", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    coarse, fine = out["by_timestep"]
+    assert coarse["timestep_ms"] == 1 and coarse["ceiling"] == out["file_says_landed"] > 10
+    assert 2 * fine["library"] < coarse["library"] and 2 * fine["ceiling"] < coarse["ceiling"]
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--timesteps", "0.3"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode != 0 and r.stderr.strip().count("\n") == 0 and "must divide the 10 ms tick" in r.stderr

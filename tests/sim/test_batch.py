@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from felis.errors import ParameterError
 from felis.learning.landing.evaluate import (
     BatchLandingSim,
     LandingSim,
@@ -113,3 +114,29 @@ def test_touchdown_compliance_batched_equals_sequential():
         assert a.tilt_deg == pytest.approx(b.tilt_deg, abs=1e-3)
         assert a.peak_impact == pytest.approx(b.peak_impact, rel=1e-3)
     assert any(abs(s.peak_impact - b.peak_impact) > 0.01 * s.peak_impact for s, b in zip(stiff, bat, strict=True))
+
+
+def test_a_finer_physics_step_runs_more_steps_a_tick_and_the_same_free_fall():
+    # 0.25 ms: 40 steps a 10 ms tick; before touchdown free fall is the same to the integrator's order
+    d = Drop(0.0, 0.0, 0.0, 1.0)
+    heights = {}
+    for dt in (0.001, 0.00025):
+        sim = BatchLandingSim(nthread=1, timestep=dt)
+        shapes, z = [], []
+
+        def record(k, st, sd, active, sim=sim, shapes=shapes, z=z):
+            shapes.append(st.shape[1])
+            z.append(sd[0, -1, sim.batch._waist])
+
+        ctl = batch_controller(sim.spec, "passive", [d])
+        (res,) = sim.batch.run([d], ctl, sim.standing_waist_m, ticks=[30], record=record)
+        sim.close()
+        assert set(shapes) == {round(0.01 / dt)}
+        heights[dt] = z[29]  # waist height after 0.3 s of free fall
+    assert heights[0.001] == pytest.approx(heights[0.00025], abs=2e-3)
+    with pytest.raises(ParameterError, match="physics step"):
+        BatchLandingSim(nthread=1, timestep=0.0)
+    sim = BatchLandingSim(nthread=1, timestep=0.0003)  # 10 ms is no whole number of 0.3 ms steps
+    with pytest.raises(ParameterError, match="whole physics steps"):
+        sim.batch.run([d], batch_controller(sim.spec, "passive", [d]), sim.standing_waist_m)
+    sim.close()
