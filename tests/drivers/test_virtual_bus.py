@@ -540,6 +540,8 @@ def test_stats_count_instructions(bus, sdk):
 
 # ------------------------------------------------------------------------------------------- wire time
 def _sync_read_round_trip(port, ph, n: int, reps: int = 15) -> float:
+    """The fastest of ``reps`` sync-read round trips: a loaded host only ever adds time, so the minimum is the
+    wire's time plus the least overhead, where a median moves with whatever else the machine runs."""
     read = GroupSyncRead(port, ph, 126, 10)
     for i in range(1, n + 1):
         read.addParam(i)
@@ -548,7 +550,7 @@ def _sync_read_round_trip(port, ph, n: int, reps: int = 15) -> float:
         t0 = time.perf_counter()
         assert read.txRxPacket() == COMM_SUCCESS
         times.append(time.perf_counter() - t0)
-    return sorted(times)[len(times) // 2]
+    return min(times)
 
 
 @pytest.mark.parametrize("return_delay", [0, 100])
@@ -560,12 +562,12 @@ def test_wire_time_sync_read(return_delay):
         port = PortHandler(b.port)
         port.openPort()
         ph = PacketHandler(2.0)
-        median = _sync_read_round_trip(port, ph, 12)
+        fastest = _sync_read_round_trip(port, ph, 12)
         port.closePort()
     n_bytes = (14 + 12) + 12 * (11 + 10)
     computed = n_bytes * 10 / BAUD + 12 * return_delay * 2e-6
     # never faster than the wire; slower only by the host's overhead (generous: CI machines are shared)
-    assert computed * 0.95 <= median <= computed * 1.5 + 0.002, (median, computed)
+    assert computed * 0.95 <= fastest <= computed * 1.5 + 0.002, (fastest, computed)
 
 
 # ------------------------------------------------------------------------------------------- robots
