@@ -361,14 +361,19 @@ def _timesteps(args, drops: list[Drop], ceil_x: np.ndarray, ceil_landed: np.ndar
 SCAN_STEP_MM, SCAN_MM = 0.5, 12.0
 
 
-def _scan(args, sim, drops: list[Drop], lib) -> None:
+def _model_step(height_m: float) -> tuple[float, float]:
+    """(the model's physics step in s, how far a cat dropped from ``height_m`` falls in it at touchdown, mm)."""
     from felis.rotations import G
     from felis.sim.batch import PHYSICS_PER_TICK
 
+    dt = 1.0 / (100.0 * PHYSICS_PER_TICK)
+    return dt, math.sqrt(2.0 * G * height_m) * dt * 1000.0
+
+
+def _scan(args, sim, drops: list[Drop], lib) -> None:
     offsets = np.round(np.arange(-SCAN_MM, SCAN_MM + 1e-9, SCAN_STEP_MM), 3)
     xs = np.array([lib.choose(drop_up(d), d.height_m) for d in drops])
-    dt = 1.0 / (100.0 * PHYSICS_PER_TICK)
-    fall_mm = math.sqrt(2.0 * G * args.height) * dt * 1000.0
+    _, fall_mm = _model_step(args.height)
     rows = []
     for d, x in zip(drops, xs, strict=True):
         R = landed_at(sim, [d], x[None], list(offsets))[0]
@@ -388,11 +393,7 @@ def _scan(args, sim, drops: list[Drop], lib) -> None:
 
 
 def _penetration(args) -> None:
-    from felis.rotations import G
-    from felis.sim.batch import PHYSICS_PER_TICK
-
-    dt = 1.0 / (100.0 * PHYSICS_PER_TICK)
-    fall_mm = math.sqrt(2.0 * G * args.height) * dt * 1000.0
+    dt, fall_mm = _model_step(args.height)
     offsets = list(range(0, math.ceil(fall_mm) + 1))
     res = {f"{step * 1000:g}": penetration(args.height, offsets, step) for step in (dt, dt / 4)}
     if args.json:
