@@ -154,9 +154,9 @@ def band_ceiling(sim, drops: list[Drop], cands: list[np.ndarray], offsets_mm: li
         run([(i, int(c), j) for i, cs in level for c in cs for j in rest])
         for i, cs in level:
             for c in cs:
-                total = int(R[i][c].sum())
-                if total > best_count[i]:
-                    best_count[i], best[i] = total, int(c)
+                lands = int(R[i][c].sum())
+                if lands > best_count[i]:
+                    best_count[i], best[i] = lands, int(c)
     at_h = np.array([bool((r[:, offsets_mm.index(0)] == 1).any()) for r in R])
     return best_count / n_off, best, at_h
 
