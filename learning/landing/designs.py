@@ -9,8 +9,11 @@ A `Design` changes the described cat (`felis/robots/cat.toml`, `sim/models/cat.x
   layer's per-tick step and the optimum's joint speed) becomes its ω₀;
 * **supply voltage** V: a DC motor's stall torque and no-load speed both scale with V, so τ_s and ω₀ are the
   datasheet's figures times V / V_nominal (the XL330 and XC330 run on 3.7–6 V; `VOLTS_MAX`);
-* **paw contact**: the feet's ``solref`` time constant τ (`sim/models/cat.xml`: 4 ms; a paw carrying a
-  quarter of the cat is a spring of k ≈ (M/4)/τ², docs/landing.md).
+* **paw contact**: the time constant τ of the feet's contact with the floor (`sim/models/cat.xml`: 4 ms; a paw
+  carrying a quarter of the cat is a spring of k ≈ (M/4)/τ², docs/landing.md; `paw_edit`). ``soft-rubber-paw``
+  (3 ms) is the contact that ``rubber-paw`` made before `paw_edit` gave the feet priority over the floor (MuJoCo
+  averaged its 2 ms with the floor's 4 ms): every "rubber paw" figure measured before 2026-11-28 is its, bit for
+  bit.
 
 Masses stay the model's: an XC330 is 5 g heavier than an XL330 (23 g against 18 g), 1 % of the cat per
 servo, which the study ignores. `DESIGNS` holds the study's designs, `design_sim` builds the batch simulation
@@ -78,7 +81,8 @@ DESIGNS: dict[str, Design] = {d.name: d for d in (
     Design("fast-limbs+strong-spine", "both of the above",
            servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T", "spine": "XC330-M181-T"}),
     Design("6V", "XL330-M288-T at its 6 V maximum (×1.2 speed and stall torque)", volts=6.0),
-    Design("rubber-paw", "moulded-rubber paws, τ = 2 ms (k ≈ 61 kN/m)", paw_tau_s=0.002),
+    Design("rubber-paw", "moulded-rubber paws (Shore ≈ 50A), τ = 2 ms (k ≈ 61 kN/m)", paw_tau_s=0.002),
+    Design("soft-rubber-paw", "soft rubber paws (Shore ≈ 30A), τ = 3 ms (k ≈ 27 kN/m)", paw_tau_s=0.003),
 )}
 
 
@@ -113,7 +117,13 @@ def design_robot(design: Design, base: RobotSpec | None = None):
 
 
 def paw_edit(tau: float) -> Callable:
-    """`mujoco.MjSpec` edit: every foot geom's contact time constant (solref) to ``tau`` (damping ratio 1)."""
+    """`mujoco.MjSpec` edit: the contact of every foot geom with the floor gets the time constant ``tau`` (solref
+    ``(tau, 1)``, damping ratio 1).
+
+    MuJoCo mixes the solref of two geoms of equal priority (a weighted average, solmix 1 each): a foot of τ against
+    the model's 4 ms floor would make a contact of (τ + 4 ms)/2. So each foot also gets priority 1 (the floor and
+    every other geom of the cat have 0), and a contact of a foot takes the foot's parameters as they are, friction
+    included (the same as the floor's)."""
 
     def edit(ms) -> None:
         feet = [g for g in ms.geoms if g.name.endswith("_foot")]
@@ -121,6 +131,7 @@ def paw_edit(tau: float) -> Callable:
             raise ParameterError("the cat's model has no *_foot geoms: the paw cannot be changed")
         for g in feet:
             g.solref = [tau, 1.0]
+            g.priority = 1
 
     return edit
 

@@ -60,7 +60,7 @@ def test_fast_limbs_puts_the_m077_on_legs_and_tail():
         sim.close()
 
 
-def test_six_volts_scales_speed_and_stall_torque_and_rubber_paws_change_only_the_feet():
+def test_six_volts_scales_speed_and_stall_torque_and_rubber_paws_change_only_the_feet_contact():
     spec, servo, _ = design_robot(DESIGNS["6V"])
     m = SERVOS["XL330-M288-T"]
     assert np.allclose(spec.max_velocity, m.no_load_speed * 1.2)
@@ -74,6 +74,18 @@ def test_six_volts_scales_speed_and_stall_torque_and_rubber_paws_change_only_the
             assert list(mp.geom_solref[g]) == pytest.approx(want), name
         assert sum((mujoco.mj_id2name(mb, mujoco.mjtObj.mjOBJ_GEOM, g) or "").endswith("_foot")
                    for g in range(mb.ngeom)) == 4
+        # the contact the solver uses: the feet's τ as it is (equal priorities would average it with the floor's
+        # 4 ms: 3 ms), the floor's friction and solimp unchanged
+        for m, tau in ((mp, 0.002), (mb, 0.004)):
+            d = mujoco.MjData(m)
+            for _ in range(300):  # the cat settles onto its four feet
+                mujoco.mj_step(m, d)
+            feet = [c for c in d.contact[:d.ncon] if m.geom(c.geom2).name.endswith("_foot")]
+            assert len(feet) == 4
+            for c in feet:
+                assert list(c.solref) == pytest.approx([tau, 1.0])
+                assert list(c.solimp) == pytest.approx([0.95, 0.99, 0.001, 0.5, 2.0])
+                assert c.friction[:3] == pytest.approx([0.9, 0.9, 0.005])
     finally:
         paw.close()
         base.close()
