@@ -3,15 +3,18 @@
 The legs' Position P gain drops to a fraction s of the described below the landing rule's height
 (`felis.controllers.landing`, `felis.hal.Command.stiffness`; I, D, feedforward kept). For each height it replays,
 on `random:100 --seed 0`, (a) the shipped per-drop optimum's motions (`learning/weights/landing_optimum-*.json`,
-searched with stiff legs: not re-searched here) and (b) the shipped policy, for s = 1, 0.5, 0.25, 0.1, in batches
+searched with stiff legs: not re-searched here) and (b) the evolved nets (``--policy shipped``), for s = 1, 0.5,
+0.25, 0.1, in batches
 (`felis.sim.batch.DropBatch`); it counts landings, the failures whose first wrong contact is a leg link, and
 the median peak impact (body weights).
 
 Then the paw: the feet's contact is a model parameter (`sim/models/cat.xml`: a 12 mm sphere with MuJoCo's
 ``solref = (τ, 1)``, τ = 4 ms). With ζ = 1 and solimp's d ≈ 1, a contact behaves as a spring of k ≈ m/τ² per
 unit of the mass m it stops, so a paw carrying a quarter of the cat has k ≈ (M/4)/τ²; a rubber pad of thickness
-t and contact area A of that stiffness has Young's modulus E = k·t/A. The table replays the same motions and the
-policy with stiff legs on paws of τ = 4 (the model's), 2, 8 and 16 ms, and prints k and E (t = 5 mm, A = π·(6 mm)²)
+t and contact area A of that stiffness has Young's modulus E = k·t/A. The table replays the same motions, the
+nets and the motion library (the shipped policy, `--policy library`; searched on the 4 ms paw) with stiff legs on paws
+of τ = 4 (the model's), 2, 8 and 16 ms (the contact's τ: `felis.learning.landing.designs.paw_edit`), and prints k
+and E (t = 5 mm, A = π·(6 mm)²)
 for each, to read against rubber (Shore 40–60A: E ≈ 1.5–4 MPa) and soft silicone or foam pads (0.1–1 MPa).
 
     python bench/landing_compliance.py [--json]      (about 130 s on 2 cores)
@@ -29,7 +32,7 @@ import numpy as np
 
 from felis.controllers.landing import LandingBatch
 from felis.learning.landing.designs import paw_edit
-from felis.learning.landing.evaluate import BatchLandingSim, shipped_policy
+from felis.learning.landing.evaluate import BatchLandingSim, batch_controller, shipped_policy
 from felis.learning.landing.optimum import DropOptimum, evaluate
 from felis.learning.landing.policy import load_policy
 
@@ -66,6 +69,8 @@ def main() -> None:
                 out[f"{h} optimum s={s:g}"] = summary(got)
                 pol = sim.run(drops, LandingBatch(sim.spec, [behaviour], touchdown_stiffness=s), policy="shipped")
                 out[f"{h} policy s={s:g}"] = summary(pol)
+            out[f"{h} library paw 4 ms"] = summary(sim.run(drops, batch_controller(sim.spec, "library", drops),
+                                                           policy="library"))
     finally:
         sim.close()
     for tau in PAW_TAU_S[1:]:
@@ -80,6 +85,8 @@ def main() -> None:
                 out[f"{h} optimum paw {tau * 1e3:g} ms"] = summary(got)
                 out[f"{h} policy paw {tau * 1e3:g} ms"] = summary(
                     paw.run(drops, LandingBatch(paw.spec, [behaviour]), policy="shipped"))
+                out[f"{h} library paw {tau * 1e3:g} ms"] = summary(
+                    paw.run(drops, batch_controller(paw.spec, "library", drops), policy="library"))
         finally:
             paw.close()
     for tau in PAW_TAU_S:

@@ -12,7 +12,7 @@ average over the heights tried, and how many land at every one of them.
     python bench/landing_height.py --design rubber-paw [--height 3]   # the design study's optimum, per design
     python bench/landing_height.py --band [--height 3] [--ceiling RESULTS.json]   # the ceiling over the band
     python bench/landing_height.py --scan 4 [--height 3]   # why: the library's choice over ±12 mm, 0.5 mm apart
-    python bench/landing_height.py --penetration [--height 3]   # and the paw's penetration, by physics step
+    python bench/landing_height.py --penetration [--height 3] [--on rubber-paw]   # the paw's penetration, by step
     python bench/landing_height.py --timesteps 1 0.5 0.25 [--height 3] [--ceiling FILE] [--on rubber-paw]
 
 ``--design NAME``: instead, the design study's per-drop optimum (searched from scratch, on the same drops) for that
@@ -176,16 +176,19 @@ def period_mm(pattern: np.ndarray, step_mm: float, min_mm: float = 3.0) -> float
     return float(list(shifts)[int(np.argmax(agree))] * step_mm)
 
 
-def penetration(height_m: float, offsets_mm, timestep: float) -> list[tuple[float, float, float | None]]:
-    """The described cat dropped level (its lowest point at ``height_m`` + each offset), joints held at the release
-    pose, plain `mujoco.mj_step` at ``timestep`` s: (offset mm, the feet's deepest penetration into the floor in mm,
-    ms from the first foot contact to a leg link's first contact, or None) over the 50 ms after touchdown."""
+def penetration(height_m: float, offsets_mm, timestep: float, design: str = "cat"
+                ) -> list[tuple[float, float, float | None]]:
+    """The described cat (or ``design``'s: its paw) dropped level (its lowest point at ``height_m`` + each offset),
+    joints held at the release pose, plain `mujoco.mj_step` at ``timestep`` s: (offset mm, the feet's deepest
+    penetration into the floor in mm, ms from the first foot contact to a leg link's first contact, or None) over
+    the 50 ms after touchdown."""
     import mujoco
 
+    from felis.learning.landing.designs import design_robot, get_design
     from felis.sim.robot import load_model, model_path
     from felis.spec import load_spec
 
-    m = load_model(model_path(load_spec("cat")))
+    m = load_model(model_path(load_spec("cat")), edit=design_robot(get_design(design))[2])
     m.opt.timestep = float(timestep)
     d = mujoco.MjData(m)
     gid = {n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ("floor", *(
@@ -237,7 +240,8 @@ def main() -> None:
                     "every 0.5 mm of ±12 mm, and the period of its landings (module doc)")
     ap.add_argument("--timesteps", type=float, nargs="+", metavar="MS", help="instead: the library's choice and "
                     "the ceiling's motions at each physics step (ms), on the described cat or --on DESIGN")
-    ap.add_argument("--on", default="cat", metavar="DESIGN", help="--timesteps: the design study's cat to run on")
+    ap.add_argument("--on", default="cat", metavar="DESIGN", help="--timesteps, --penetration: the design study's "
+                    "cat to run on")
     ap.add_argument("--penetration", action="store_true", help="instead: a level drop's paw penetration and leg-link "
                     "contact by the height's phase in a physics step, at the model's step and a quarter of it")
     ap.add_argument("--json", action="store_true")
@@ -329,12 +333,12 @@ def main() -> None:
 
 def _timesteps(args, drops: list[Drop], ceil_x: np.ndarray, ceil_landed: np.ndarray, lib) -> None:
     from felis.learning.landing.designs import design_sim, get_design
+    from felis.learning.landing.evaluate import check_timestep_ms
 
     try:
         get_design(args.on)
         for ms in args.timesteps:
-            if not (math.isfinite(ms) and 0 < ms <= 10 and abs(10 / ms - round(10 / ms)) < 1e-6):
-                raise ParameterError(f"a physics step must divide the 10 ms tick, got {ms:g} ms")
+            check_timestep_ms(ms)
     except ParameterError as e:
         raise SystemExit(f"landing_height: {e}") from None
     from felis.learning.landing.optimum import evaluate
@@ -393,15 +397,22 @@ def _scan(args, sim, drops: list[Drop], lib) -> None:
 
 
 def _penetration(args) -> None:
+    from felis.learning.landing.designs import get_design
+
+    try:
+        get_design(args.on)
+    except ParameterError as e:
+        raise SystemExit(f"landing_height: {e}") from None
     dt, fall_mm = _model_step(args.height)
     offsets = list(range(0, math.ceil(fall_mm) + 1))
-    res = {f"{step * 1000:g}": penetration(args.height, offsets, step) for step in (dt, dt / 4)}
+    res = {f"{step * 1000:g}": penetration(args.height, offsets, step, args.on) for step in (dt, dt / 4)}
     if args.json:
-        print(json.dumps({"height_m": args.height, "fall_per_step_mm": fall_mm,
+        print(json.dumps({"height_m": args.height, "fall_per_step_mm": fall_mm, "on": args.on,
                           "by_timestep_ms": {k: [{"offset_mm": o, "deepest_mm": round(p, 2), "link_after_ms": lag}
                                                  for o, p, lag in v] for k, v in res.items()}}, indent=1))
         return
-    print(f"a level drop from {args.height:g} m + offset, joints held; one physics step's fall: {fall_mm:.1f} mm")
+    print(f"{args.on}: a level drop from {args.height:g} m + offset, joints held; one physics step's fall: "
+          f"{fall_mm:.1f} mm")
     for k, v in res.items():
         print(f"Δt {k} ms: " + ", ".join(f"+{o:g} mm {p:.1f}" + ("" if lag is None else f" (link {lag:.1f} ms)")
                                           for o, p, lag in v))

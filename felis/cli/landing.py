@@ -170,6 +170,9 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--design", default="cat", choices=list(DESIGNS),
                    help="another buildable cat (servos, voltage, paws; docs/landing.md, the design study); "
                    "default cat, the described one")
+    e.add_argument("--timestep", type=float, metavar="MS",
+                   help="the physics step in ms (default the model's, 1; it must divide the 10 ms control tick): "
+                   "whether a result holds as the impact is resolved more finely (docs/landing.md, the physics step)")
     e.add_argument("--seed", type=int, default=0, help="seed of random:N (default 0)")
     e.add_argument("--height", type=float, metavar="M", help="drop height for random:N (m, default 1.0)")
     e.add_argument("--workers", type=int, help="rollout threads (default: every core); optimum: processes, one "
@@ -447,6 +450,12 @@ def cmd_eval_landing(args) -> int:
     args.policy = args.policy or default_policy()
     if args.design != "cat" and args.live is not None:
         raise ParameterError("--live runs the described cat; --design is for batched evaluations")
+    if args.timestep is not None:
+        from felis.learning.landing.evaluate import check_timestep_ms
+
+        check_timestep_ms(args.timestep)
+        if args.live is not None:
+            raise ParameterError("--live runs the model's physics step; --timestep is for batched evaluations")
     if args.policy == "optimum":
         if args.live is not None:
             raise ParameterError("--live needs a policy that runs in the loop; optimum searches many rollouts")
@@ -463,11 +472,13 @@ def cmd_eval_landing(args) -> int:
     else:
         bar, step = output.progress(len(drops), "drops", quiet)
         with bar:
-            outcomes = run_drops(drops, args.policy, workers=args.workers, progress=step, design=args.design)
+            outcomes = run_drops(drops, args.policy, workers=args.workers, progress=step, design=args.design,
+                                 timestep=None if args.timestep is None else args.timestep / 1000.0)
     summary = summarise(outcomes)
     res = {"success_rate": summary["success_rate"], "policy": args.policy, **summary,
            "by_tilt": by_tilt(drops, [o.landed for o in outcomes]),
-           "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design}
+           "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design,
+           **_step(args)}
     res["drops"] = res.pop("drops")  # the per-drop list last, after the headline and the counts
     return output.emit(args, res, _print_summary)
 
@@ -499,7 +510,7 @@ def _eval_optimum(args, drops) -> int:
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address,
                             workdir=str(args.checkpoint) if args.checkpoint else None, resume=args.resume,
                             progress=step, design=args.design, late_ticks=args.late_ticks, patch_deg=args.patch,
-                            warm=warm)
+                            warm=warm, timestep_ms=args.timestep)
     if args.motions is not None:
         _write_motions(args.motions, best)
     landed = [o.landed for o in best]
@@ -516,8 +527,13 @@ def _eval_optimum(args, drops) -> int:
                       "warm_start": args.warm_start,  # "library": the shipped one
                       "rollouts": int(sum(o.rollouts for o in best))},
            "drops_source": args.drops, "seed": args.seed if ":" in args.drops else None, "design": args.design,
-           "drops": [o.as_dict() for o in best]}
+           **_step(args), "drops": [o.as_dict() for o in best]}
     return output.emit(args, res, _print_summary)
+
+
+def _step(args) -> dict:
+    """The result's ``timestep_ms`` when ``--timestep`` set one (results at the model's step carry none, as before)."""
+    return {} if args.timestep is None else {"timestep_ms": args.timestep}
 
 
 def _write_motions(folder: Path, best) -> None:
@@ -544,7 +560,9 @@ def _print_summary(r: dict) -> None:
     rate = "n/a" if r["success_rate"] is None else f"{r['success_rate']:.3f}"
     src = r["drops_source"] + (f", seed {r['seed']}" if r["seed"] is not None else "")
     waist = f"; standing waist {r['standing_waist_m']:.3f} m" if r.get("standing_waist_m") else ""
-    print(f"{r['total']} drops from {hs} ({src}), policy {r['policy']}: {r['landed']} landed "
+    on = "" if r.get("design", "cat") == "cat" else f" on {r['design']}"
+    step = f", physics step {r['timestep_ms']:g} ms" if r.get("timestep_ms") is not None else ""
+    print(f"{r['total']} drops from {hs} ({src}){on}{step}, policy {r['policy']}: {r['landed']} landed "
           f"(success rate {rate}){waist}")
     if r.get("by_tilt"):
         print("  by start tilt: " + ", ".join(f"{k}: {v['landed']}/{v['total']}" for k, v in r["by_tilt"].items()))

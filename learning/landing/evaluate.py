@@ -27,6 +27,7 @@ path through `felis.loop.run_loop` in a process pool, which the batch is tested 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +47,16 @@ from felis.spec import load_spec
 
 RATE_HZ = 100.0
 MARGIN_S = 1.0  # after the fall: the 0.5 s window and 0.5 s more
+
+
+def check_timestep_ms(ms: float) -> float:
+    """``ms`` (a physics step in milliseconds) if a whole number of such steps fills the 10 ms control tick, else
+    one-line `ParameterError`."""
+    tick = 1000.0 / RATE_HZ
+    if not (isinstance(ms, int | float) and math.isfinite(ms) and 0 < ms <= tick
+            and abs(tick / ms - round(tick / ms)) < 1e-6):
+        raise ParameterError(f"a physics step must divide the {tick:g} ms control tick, got {ms:g} ms")
+    return float(ms)
 POLICIES = {"passive": "hold", "stand": "stand"}  # baseline name → controller name
 NAMED = (*POLICIES, "rules", "shipped", "library")
 
@@ -232,20 +243,24 @@ def _one(args) -> LandingOutcome:
 
 def run_drops(drops: Sequence[Drop], policy: str = "passive", *, workers: int | None = None, robot: str = "cat",
               progress: Callable[[int], None] | None = None, chunk: int = 256,
-              design: str = "cat") -> list[LandingOutcome]:
+              design: str = "cat", timestep: float | None = None) -> list[LandingOutcome]:
     """Run every drop with ``policy``, batched (`BatchLandingSim`: ``chunk`` cats at a time on ``workers``
     threads, default every core); results in drop order, identical whatever the number of workers (each cat
     is stepped alone). ``progress(n)`` after each batch of n drops. ``design``: another buildable cat
-    (`felis.learning.landing.designs.DESIGNS`)."""
+    (`felis.learning.landing.designs.DESIGNS`); ``timestep``: the physics step in s (default the model's, 1 ms;
+    it must divide the 10 ms control tick)."""
     from felis.learning.landing.designs import design_sim, get_design
 
     check_policy(policy)  # a bad policy fails here, once, as one line
     get_design(design)
+    if timestep is not None:
+        check_timestep_ms(timestep * 1000.0)
     if workers is not None and workers < 1:
         raise ParameterError(f"workers must be ≥ 1, got {workers}")
     if not drops:
         return []
-    sim = BatchLandingSim(robot, nthread=workers) if design == "cat" else design_sim(design, nthread=workers)
+    sim = (BatchLandingSim(robot, nthread=workers, timestep=timestep) if design == "cat"
+           else design_sim(design, nthread=workers, timestep=timestep))
     try:
         out: list[LandingOutcome] = []
         for i in range(0, len(drops), chunk):

@@ -300,14 +300,16 @@ CHECKPOINT = "optimum.jsonl"
 _SIMS: dict = {}  # per evaluator worker: its batch simulation of each design
 
 
-def _worker_sim(design: str = "cat"):
+def _worker_sim(design: str = "cat", timestep: float | None = None):
     import multiprocessing
 
     from felis.learning.landing.designs import design_sim
 
-    if design not in _SIMS:
-        _SIMS[design] = design_sim(design, nthread=None if multiprocessing.parent_process() is None else 1)
-    return _SIMS[design]
+    key = (design, timestep)
+    if key not in _SIMS:
+        _SIMS[key] = design_sim(design, nthread=None if multiprocessing.parent_process() is None else 1,
+                                timestep=timestep)
+    return _SIMS[key]
 
 
 def _init_worker() -> None:
@@ -320,7 +322,8 @@ _LIBRARIES: dict = {}  # per evaluator worker: the warm starts' libraries by pat
 def _chunk_job(job) -> list[dict]:
     index, drops, settings = job
     settings = dict(settings)
-    sim = _worker_sim(settings.pop("design", "cat"))
+    ms = settings.pop("timestep_ms", None)
+    sim = _worker_sim(settings.pop("design", "cat"), None if ms is None else ms / 1000.0)
     if "warm" in settings:
         from felis.learning.landing.library import load_library
 
@@ -337,7 +340,7 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
                  chunk: int | None = None, workdir: str | None = None, resume: bool = False,
                  progress: Callable[[int], None] | None = None, design: str = "cat",
                  late_ticks: int = 0, patch_deg: float = 0.0, warm: str | None = None,
-                 warm_radius_deg: float = WARM_RADIUS_DEG) -> list[DropOptimum]:
+                 warm_radius_deg: float = WARM_RADIUS_DEG, timestep_ms: float | None = None) -> list[DropOptimum]:
     """`optimise` for a long list: cut into chunks of ``chunk`` drops (default: shared evenly among the
     workers, at most 25 a chunk), one chunk per evaluator worker at a time
     (`felis.learning.common.evaluator`: a process pool of ``workers``, or Ray at ``ray_address``; one worker:
@@ -346,7 +349,8 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
     Results equal one `optimise` over the whole list (each drop is searched alone); ``progress(n)`` after
     each round of chunks, n drops done in it. ``design``: a cat of `felis.learning.landing.designs.DESIGNS`;
     ``late_ticks``, ``patch_deg``: as in `optimise`; ``warm``: a library file (its path, which every worker
-    reads; on Ray, the same path on every machine) whose motions join the seeds, as `optimise`'s ``warm``."""
+    reads; on Ray, the same path on every machine) whose motions join the seeds, as `optimise`'s ``warm``;
+    ``timestep_ms``: the physics step (default the model's, 1 ms; it must divide the 10 ms control tick)."""
     import json
     from pathlib import Path
 
@@ -357,6 +361,10 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
     settings = {"generations": generations, "population": population, "restarts": restarts, "seed": seed}
     if design != "cat":  # the described cat's checkpoints stay as they were
         settings["design"] = design
+    if timestep_ms is not None:
+        from felis.learning.landing.evaluate import check_timestep_ms
+
+        settings["timestep_ms"] = check_timestep_ms(timestep_ms)  # one line before any work
     if late_ticks:
         settings["late_ticks"] = int(late_ticks)
     if not patch_deg >= 0:

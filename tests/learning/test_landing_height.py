@@ -48,11 +48,11 @@ def test_a_file_that_is_not_an_optimum_results_file_is_one_line(tmp_path):
 
 
 def test_a_design_of_the_study_runs_its_own_optimum_on_its_own_cat():
-    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--design", "rubber-paw",
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--design", "soft-rubber-paw",
                         "--drops", "4", "--mm", "1", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
-    assert out["design"] == "rubber-paw" and "library" not in out and out["drops"] == 4
+    assert out["design"] == "soft-rubber-paw" and "library" not in out and out["drops"] == 4
     o = out["optimum"]
     assert o["landed_at_height"] == o["by_offset_mm"]["0"] <= 4 and o["landed_at_every_height"] <= o["landed_at_height"]
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--design", "nope"],
@@ -130,6 +130,15 @@ def test_a_level_drops_paw_penetration_depends_on_the_step_phase_at_the_model_st
     assert max(coarse) - min(coarse) > 2 * (max(fine) - min(fine))
     assert min(fine) > 5.0  # the paw sinks deeper than a 5 mm pad is thick
     assert any(row["link_after_ms"] is not None for row in by["1"])  # in some phases a leg link reaches the floor
+    # the rubber paw (τ = 2 ms, the contact's own: the feet take priority over the floor's 4 ms) sinks about a
+    # 5 mm pad's thickness at a quarter step, half the described paw's, and no leg link reaches the floor
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--penetration", "--on",
+                        "rubber-paw", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    rubber = [row["deepest_mm"] for row in out["by_timestep_ms"]["0.25"]]
+    assert out["on"] == "rubber-paw" and 4.0 < min(rubber) <= max(rubber) < 6.0 and max(rubber) < 0.6 * min(fine)
+    assert all(row["link_after_ms"] is None for rows in out["by_timestep_ms"].values() for row in rows)
 
 
 def test_from_3_m_the_described_cats_landings_go_as_the_physics_step_shrinks():
@@ -144,4 +153,4 @@ def test_from_3_m_the_described_cats_landings_go_as_the_physics_step_shrinks():
     assert 2 * fine["library"] < coarse["library"] and 2 * fine["ceiling"] < coarse["ceiling"]
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--timesteps", "0.3"],
                        capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert r.returncode != 0 and r.stderr.strip().count("\n") == 0 and "must divide the 10 ms tick" in r.stderr
+    assert r.returncode != 0 and r.stderr.strip().count("\n") == 0 and "must divide the 10 ms control tick" in r.stderr

@@ -160,3 +160,39 @@ def test_optimum_warm_start_through_the_command(tmp_path):
         bad = _felis(*argv)
         assert bad.returncode != 0 and says in bad.stderr, bad.stderr
         assert len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+
+
+def test_a_finer_physics_step_through_the_command(tmp_path):
+    """`felis eval landing --timestep MS`: the drops run at that physics step (equal to `run_drops(timestep=)`, and
+    not to the model's 1 ms: the impact is resolved differently), the result says so; the optimum searches at it and
+    its checkpoint carries it, so a search at another step is not resumed; a step that does not divide the 10 ms
+    tick, or with --live, is one line."""
+    from felis.learning.landing.evaluate import run_drops
+    from felis.scenarios.drop import random_drops
+
+    drops = random_drops(2, seed=3, heights=3.0)
+    base = ("eval", "landing", "--drops", "random:2", "--seed", "3", "--height", "3", "--policy", "passive",
+            "--json", "--workers", "1")
+    r = _felis(*base, "--timestep", "0.5")
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["timestep_ms"] == 0.5 and "timestep_ms" not in json.loads(_felis(*base).stdout)
+    fine = run_drops(drops, "passive", workers=1, timestep=0.0005)  # the JSON rounds to 2 decimals
+    assert [o["peak_impact"] for o in res["drops"]] == pytest.approx([o.peak_impact for o in fine], abs=0.006)
+    coarse = run_drops(drops, "passive", workers=1)
+    assert all(abs(a.peak_impact - b.peak_impact) > 0.1 for a, b in zip(fine, coarse, strict=True))
+    ck = tmp_path / "ck"
+    opt = ("eval", "landing", "--policy", "optimum", "--drops", "random:1", "--height", "1", "--generations", "0",
+           "--json", "--workers", "1", "--checkpoint", str(ck))
+    r = _felis(*opt, "--timestep", "0.5")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["timestep_ms"] == 0.5
+    assert json.loads((ck / "optimum.jsonl").read_text().splitlines()[0])["settings"]["timestep_ms"] == 0.5
+    again = _felis(*opt, "--timestep", "0.25", "--resume")
+    assert again.returncode != 0 and "other drops or settings" in again.stderr, again.stderr
+    for argv, says in (((*base, "--timestep", "0.3"), "must divide the 10 ms control tick, got 0.3 ms"),
+                       ((*opt, "--timestep", "0"), "must divide the 10 ms control tick"),
+                       ((*base, "--timestep", "0.5", "--live", "0"), "--timestep is for batched evaluations")):
+        bad = _felis(*argv)
+        assert bad.returncode != 0 and says in bad.stderr, bad.stderr
+        assert len(bad.stderr.strip().splitlines()) == 1, bad.stderr
