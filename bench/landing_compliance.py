@@ -13,7 +13,7 @@ Then the paw: the feet's contact is a model parameter (`sim/models/cat.xml`: a 1
 unit of the mass m it stops, so a paw carrying a quarter of the cat has k ≈ (M/4)/τ²; a rubber pad of thickness
 t and contact area A of that stiffness has Young's modulus E = k·t/A. The table replays the same motions, the
 nets and the motion library (the shipped policy, `--policy library`; searched on the 4 ms paw) with stiff legs on paws
-of τ = 4 (the model's), 2, 8 and 16 ms (the contact's τ: `felis.learning.landing.designs.paw_edit`), and prints k
+of τ = 4 (the model's), 2, 3, 8 and 16 ms (the contact's τ: `felis.learning.landing.designs.paw_edit`), and prints k
 and E (t = 5 mm, A = π·(6 mm)²)
 for each, to read against rubber (Shore 40–60A: E ≈ 1.5–4 MPa) and soft silicone or foam pads (0.1–1 MPa).
 
@@ -38,7 +38,7 @@ from felis.learning.landing.policy import load_policy
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "learning" / "weights"
 STIFFNESS = (1.0, 0.5, 0.25, 0.1)
-PAW_TAU_S = (0.004, 0.002, 0.008, 0.016)  # the model's first
+PAW_TAU_S = (0.004, 0.002, 0.003, 0.008, 0.016)  # the model's first
 PAD_T_M, PAD_A_M2 = 0.005, np.pi * 0.006**2  # a 5 mm pad, 6 mm contact radius
 
 

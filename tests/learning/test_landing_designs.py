@@ -65,7 +65,8 @@ def test_six_volts_scales_speed_and_stall_torque_and_rubber_paws_change_only_the
     m = SERVOS["XL330-M288-T"]
     assert np.allclose(spec.max_velocity, m.no_load_speed * 1.2)
     assert all(p.torque_limit == pytest.approx(m.stall_torque * 1.2) for p in servo.values())
-    paw, base = design_sim("rubber-paw", nthread=1), design_sim("cat", nthread=1)
+    paw, base, soft = design_sim("rubber-paw", nthread=1), design_sim("cat", nthread=1), design_sim(
+        "soft-rubber-paw", nthread=1)
     try:
         mp, mb = paw.batch.model, base.batch.model
         for g in range(mb.ngeom):
@@ -76,7 +77,7 @@ def test_six_volts_scales_speed_and_stall_torque_and_rubber_paws_change_only_the
                    for g in range(mb.ngeom)) == 4
         # the contact the solver uses: the feet's τ as it is (equal priorities would average it with the floor's
         # 4 ms: 3 ms), the floor's friction and solimp unchanged
-        for m, tau in ((mp, 0.002), (mb, 0.004)):
+        for m, tau in ((mp, 0.002), (mb, 0.004), (soft.batch.model, 0.003)):
             d = mujoco.MjData(m)
             for _ in range(300):  # the cat settles onto its four feet
                 mujoco.mj_step(m, d)
@@ -89,6 +90,7 @@ def test_six_volts_scales_speed_and_stall_torque_and_rubber_paws_change_only_the
     finally:
         paw.close()
         base.close()
+        soft.close()
 
 
 def test_per_joint_speeds_make_each_joint_reach_its_waypoint_at_its_own_speed():
