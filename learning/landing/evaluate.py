@@ -48,6 +48,9 @@ from felis.spec import load_spec
 RATE_HZ = 100.0
 MARGIN_S = 1.0  # after the fall: the 0.5 s window and 0.5 s more
 
+POLICIES = {"passive": "hold", "stand": "stand"}  # baseline name → controller name
+NAMED = (*POLICIES, "rules", "shipped", "library")
+
 
 def check_timestep_ms(ms: float) -> float:
     """``ms`` (a physics step in milliseconds) if a whole number of such steps fills the 10 ms control tick, else
@@ -57,8 +60,6 @@ def check_timestep_ms(ms: float) -> float:
             and abs(tick / ms - round(tick / ms)) < 1e-6):
         raise ParameterError(f"a physics step must divide the {tick:g} ms control tick, got {ms:g} ms")
     return float(ms)
-POLICIES = {"passive": "hold", "stand": "stand"}  # baseline name → controller name
-NAMED = (*POLICIES, "rules", "shipped", "library")
 
 
 def shipped_policy() -> Path:
