@@ -541,15 +541,22 @@ def test_stats_count_instructions(bus, sdk):
 # ------------------------------------------------------------------------------------------- wire time
 def _sync_read_round_trip(port, ph, n: int, reps: int = 15) -> float:
     """The fastest of ``reps`` sync-read round trips: a loaded host only ever adds time, so the minimum is the
-    wire's time plus the least overhead, where a median moves with whatever else the machine runs."""
+    wire's time plus the least overhead, where a median moves with whatever else the machine runs. A round trip
+    that the SDK times out (a host stall past its packet timeout: seen once in a fresh-clone CI run) is tried
+    again, up to ``reps`` more times; every one must still succeed in the end."""
     read = GroupSyncRead(port, ph, 126, 10)
     for i in range(1, n + 1):
         read.addParam(i)
-    times = []
-    for _ in range(reps):
+    times, stalls = [], []
+    while len(times) < reps:
         t0 = time.perf_counter()
-        assert read.txRxPacket() == COMM_SUCCESS
-        times.append(time.perf_counter() - t0)
+        rc = read.txRxPacket()
+        if rc == COMM_SUCCESS:
+            times.append(time.perf_counter() - t0)
+        else:
+            stalls.append(rc)
+            assert len(stalls) <= reps, f"{len(stalls)} sync reads failed ({stalls}), {len(times)} succeeded"
+            port.clearPort()
     return min(times)
 
 
