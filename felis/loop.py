@@ -9,7 +9,8 @@
                                             # (switched off, a servo rebooted) or a tripped Bus
                                             # Watchdog stops the run, naming the joints
         command = controller(state)
-        command = safety.filter(command)    # non-finite → hold, soft limits, max step
+        command = safety.filter(command, t) # non-finite → hold, soft limits, max step (a speed: late ticks
+                                            # catch up, `felis.safety`)
         sent    = robot.write(command)      # what the backend actually sent (after its clamping)
         monitors(state, sent); log
         robot.advance(dt)                   # simulation: step physics; hardware: returns
@@ -190,7 +191,7 @@ def run_loop(
             if log is not None:
                 log.event(state.t, "armed")
         controller.reset(robot.spec, state)
-        layer.reset(state.q)
+        layer.reset(state.q, state.t)
         for m in monitors:
             if hasattr(m, "reset"):
                 m.reset(robot.spec, state)
@@ -233,7 +234,7 @@ def run_loop(
                         stopped = (f"imu lost: no IMU reading for {state.t - imu_lost_at:.2f} s and {name} needs "
                                    "one")
                         break
-                command = layer.filter(controller(state))
+                command = layer.filter(controller(state), state.t)
             except CommError as e:
                 if e.fatal:  # the port is gone: nothing to hold
                     stopped = f"comm lost: {e}"

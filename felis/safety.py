@@ -7,7 +7,14 @@ Per tick, on the controller's command (`SafetyLayer.filter`):
 2. Soft limits: ``q`` is clamped to ``[lower + margin, upper - margin]`` of the description.
 3. Maximum step: ``|q - q_last_sent| <= max_step`` with ``max_step = fraction · v_max · dt`` per joint
    (v_max from the description, by default the servo's no-load speed), so no target can jump; at
-   start-up ``q_last_sent`` is the present position, which is what makes arming jump-free.
+   start-up ``q_last_sent`` is the present position, which is what makes arming jump-free. Given the
+   robot's time of each command (``filter(command, t)``: the loop passes ``state.t``), the bound is a speed,
+   not a step: a tick that comes ``e`` s after the last command sent (a late tick on a wall clock, a
+   stalled host) may move its targets by ``fraction · v_max · e``, with ``e`` at most
+   ``SafetyConfig.max_late_ticks`` ticks, as far as the servo itself could have moved meanwhile. A fixed
+   step would leave a late tick's targets behind the controller's path, and a path timed against a falling
+   body (the landing motions, on servos whose host is loaded) then lands on its back. On a simulation's
+   exact ticks ``e = dt`` and the bound is the step, bit for bit.
 4. Stiffness (`felis.hal.Command.stiffness`) is clamped to ``[MIN_STIFFNESS, 1]``: a controller may soften a
    joint, never stiffen it past its description nor make it limp.
 
@@ -37,6 +44,7 @@ class SafetyConfig:
     max_speed_fraction: float = 1.0  # max step per tick as a fraction of v_max·dt
     read_fail_tolerance: int = 3  # consecutive failed reads tolerated; one more trips
     overrun_tolerance: int = 10  # consecutive overruns tolerated (wall clock only)
+    max_late_ticks: float = 10.0  # a late command may catch up at most this many ticks' max step (module doc, 3)
     stop_on_hardware_error: bool = True  # a servo reporting a hardware error (e.g. overload) ends the run
     imu_timeout_s: float = 0.3  # an IMU quiet this long stops a controller that needs one (an event at once)
 
@@ -45,6 +53,8 @@ class SafetyConfig:
             raise ValueError("soft_margin must be ≥ 0 and max_speed_fraction in (0, 10]")
         if self.read_fail_tolerance < 0 or self.overrun_tolerance < 0 or not self.imu_timeout_s >= 0:
             raise ValueError("watchdog tolerances must be ≥ 0")
+        if not 1.0 <= self.max_late_ticks <= 100.0:
+            raise ValueError("max_late_ticks must be within 1…100 ticks")
 
 
 @dataclass
@@ -67,15 +77,29 @@ class SafetyLayer:
         self.upper = spec.upper - margin
         if np.any(self.lower > self.upper):
             raise ValueError(f"soft_margin {margin} leaves no range for some joint of {spec.name}")
+        self.dt = float(dt)
         self.max_step = self.config.max_speed_fraction * spec.max_velocity * dt
         self.counters = SafetyCounters()
         self.events: list[tuple[str, dict]] = []  # this tick's events, for the log
         self._last: Command | None = None
+        self._t_sent: float | None = None  # the robot's time of the last command sent (module doc, 3)
+        self._t_filtered: float | None = None
 
-    def reset(self, q_present: np.ndarray) -> None:
-        """Start from the present position: the first targets may move at most one step from it."""
+    def reset(self, q_present: np.ndarray, t: float | None = None) -> None:
+        """Start from the present position (read at the robot's time ``t``): the first targets may move at most
+        one step from it (or, given times, as far as ``v_max`` allows since ``t``)."""
         q0 = np.clip(np.asarray(q_present, dtype=float), self.lower, self.upper)
         self._last = Command(q=q0)
+        self._t_sent = self._t_filtered = None if t is None else float(t)
+
+    def step(self, t: float | None) -> np.ndarray:
+        """The largest target change per joint for a command at the robot's time ``t`` (module doc, 3)."""
+        if t is None or self._t_sent is None:
+            return self.max_step
+        late = (float(t) - self._t_sent) / self.dt
+        if not late > 1.0 + 1e-6:  # on time (a simulation's tick, whatever its rounding), or a clock gone back
+            return self.max_step
+        return self.max_step * min(late, self.config.max_late_ticks)
 
     @property
     def last(self) -> Command:
@@ -83,9 +107,12 @@ class SafetyLayer:
             raise RuntimeError("SafetyLayer.reset() must be called with the present position first")
         return self._last
 
-    def filter(self, command: Command) -> Command:
+    def filter(self, command: Command, t: float | None = None) -> Command:
+        """The command made safe (module doc); ``t``: the robot's time of the state it answers (`felis.hal.State.t`),
+        which lets a late tick catch up (3); None: one tick since the last command."""
         last = self.last
         self.events = []
+        self._t_filtered = None if t is None else float(t)
         q = command.q if isinstance(command.q, np.ndarray) else np.asarray(command.q, dtype=float)
         dq_max = command.dq_max
         if dq_max is not None:
@@ -102,8 +129,9 @@ class SafetyLayer:
             self.events.append(("nonfinite_held", {"joints": bad, "shape": list(q.shape)}))
             return last
         # one clamp to [max(lower, last − step), min(upper, last + step)]; attribute it only when it bites
-        lo = np.maximum(self.lower, last.q - self.max_step)
-        hi = np.minimum(self.upper, last.q + self.max_step)
+        step = self.step(t)
+        lo = np.maximum(self.lower, last.q - step)
+        hi = np.minimum(self.upper, last.q + step)
         out = np.minimum(np.maximum(q, lo), hi)
         if _any(out != q):
             beyond = (q < self.lower) | (q > self.upper)
@@ -130,8 +158,11 @@ class SafetyLayer:
         return out
 
     def sent(self, command: Command) -> None:
-        """Record what the robot actually sent: the reference for the next step limit and hold."""
+        """Record what the robot actually sent: the reference for the next step limit and hold. Its time is the
+        last `filter`'s ``t`` (a tick that held, its read failed, keeps the time of the target it repeats)."""
         self._last = command
+        if self._t_filtered is not None:
+            self._t_sent = self._t_filtered
 
 
 @dataclass

@@ -64,6 +64,31 @@ def test_soft_limits_and_max_step():
     assert q == pytest.approx(CAT.upper - 0.1)  # converges onto the soft limit, never past it
 
 
+def test_a_late_tick_may_catch_up_as_far_as_the_servo_could_move():
+    """Given the robot's time of each command, the max step is a speed (`felis.safety`, 3): a tick 3 ticks after the
+    last command sent may move 3 steps, at most ``max_late_ticks`` steps; on time (rounding included) it is one step,
+    and a tick that held (no `filter`) keeps the time of the target it repeats."""
+    layer = SafetyLayer(CAT, dt=0.001, config=SafetyConfig(max_late_ticks=5))  # 1 kHz: 11 steps stay in range
+    step = CAT.max_velocity * 0.001
+    far = CAT.upper
+    layer.reset(np.zeros(12), t=1.0)
+    out = layer.filter(Command(q=far), t=1.001 + 1e-12)  # on time, a float's rounding late
+    assert out.q == pytest.approx(step)
+    layer.sent(out)
+    out = layer.filter(Command(q=far), t=1.005)  # 4 ticks since the last command sent
+    assert out.q == pytest.approx(5 * step)
+    layer.sent(out)
+    layer.sent(out)  # a held tick: its read failed, no filter
+    out = layer.filter(Command(q=far), t=1.025)  # 20 ticks late: capped at 5
+    assert out.q == pytest.approx(10 * step)
+    layer.sent(out)
+    assert layer.filter(Command(q=far), t=1.02).q == pytest.approx(11 * step)  # a clock gone back: one step
+    assert layer.filter(Command(q=far)).q == pytest.approx(11 * step)  # no time: one step
+    assert np.all(11 * step < CAT.upper)
+    with pytest.raises(ValueError, match="max_late_ticks"):
+        SafetyConfig(max_late_ticks=0.5)
+
+
 def test_nonfinite_holds_last_good_and_counts():
     layer = SafetyLayer(CAT, dt=0.01)
     layer.reset(np.zeros(12))
