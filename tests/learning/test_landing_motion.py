@@ -79,11 +79,13 @@ def test_optimum_writes_motions_that_felis_run_lands(tmp_path):
 
 
 def test_the_hard_drop_lands_on_mujoco_and_through_the_virtual_bus_with_the_library(tmp_path):
-    """The demo's hard drop (issue 21): tilted 140° from 3 m (`felis.cli.demo.HARD_DROP`), under the shipped motion
+    """The demo's hard drop (issue 21): tilted 143° from 3 m (`felis.cli.demo.HARD_DROP`), under the shipped motion
     library, the policy of every other drop, lands on MuJoCo by the landing rule. Through the virtual Dynamixel bus
     (servo-in-the-loop, on the wall clock) the library turns the cat by more than 60° before it touches down and it ends
-    upright by its IMU (the bus has no floor truth); the motion chosen for it lands on MuJoCo started 1 or 2 ticks
-    late and from 1° off too, so a wall clock's jitter does not topple it (docs/landing.md)."""
+    upright by its IMU (the bus has no floor truth); the motion chosen for it lands on MuJoCo started 1 to 4 ticks
+    late and from 2° off too, so a wall clock's jitter under this suite's load does not topple it (a drop that lands
+    only on time or 2 ticks late, the demo's earlier (141, 8), ended on its back in 3 of 8 runs through the bus beside
+    two busy processes; docs/landing.md)."""
     from felis.cli.demo import HARD_DROP
     from felis.learning.landing.evaluate import BatchLandingSim, LandingSim
     from felis.learning.landing.library import drop_up, load_library
@@ -104,8 +106,8 @@ def test_the_hard_drop_lands_on_mujoco_and_through_the_virtual_bus_with_the_libr
     x = load_library().choose(drop_up(d), h)[None]
     batch = BatchLandingSim(nthread=2)
     try:
-        late = [v.landed for _, v in evaluate(batch, [d], x, late_ticks=2)]
-        off = [v.landed for _, v in evaluate(batch, [d], x, patch_deg=1.0)]
+        late = [v.landed for _, v in evaluate(batch, [d], x, late_ticks=4)]
+        off = [v.landed for _, v in evaluate(batch, [d], x, patch_deg=2.0)]
     finally:
         batch.close()
     assert late == off == [True]
