@@ -279,6 +279,8 @@ def batched_speed(task: lk.Task, jobs: list[tuple], repeats: int) -> dict:
         "ratio_today": round(med(r_today), 3),
         "ratio_today_range": [round(r_today[0], 3), round(r_today[-1], 3)],
         "goals": f"open loop >= {BATCH_GOAL_OPEN_LOOP}, today >= {BATCH_GOAL_TODAY}",
+        "met_open_loop": med(r_open) >= BATCH_GOAL_OPEN_LOOP,
+        "met_today": med(r_today) >= BATCH_GOAL_TODAY,
         "met": med(r_open) >= BATCH_GOAL_OPEN_LOOP and med(r_today) >= BATCH_GOAL_TODAY,
     }
 
@@ -329,10 +331,10 @@ def main() -> None:
     print(f"    open-loop mujoco.rollout: {b['open_loop_steps_per_s']:9d}   (anchor: the same controls)")
     print(f"    felis batch             : {b['batched_steps_per_s']:9d}   ratio {b['ratio_open_loop']:.3f} "
           f"(runs {b['ratio_open_loop_range'][0]:.3f}…{b['ratio_open_loop_range'][1]:.3f}; goal ≥ "
-          f"{BATCH_GOAL_OPEN_LOOP})")
+          f"{BATCH_GOAL_OPEN_LOOP}: {'met' if b['met_open_loop'] else 'NOT met'})")
     print(f"    sequential (today)      : {b['sequential_steps_per_s']:9d}   batch ÷ today {b['ratio_today']:.2f}× "
-          f"(runs {b['ratio_today_range'][0]:.2f}…{b['ratio_today_range'][1]:.2f}; goal ≥ {BATCH_GOAL_TODAY}×): "
-          f"{'met' if b['met'] else 'NOT met'}")
+          f"(runs {b['ratio_today_range'][0]:.2f}…{b['ratio_today_range'][1]:.2f}; goal ≥ {BATCH_GOAL_TODAY}×: "
+          f"{'met' if b['met_today'] else 'NOT met'})")
 
 
 if __name__ == "__main__":
