@@ -157,18 +157,26 @@ def misses(shelf: Shelf, radius_deg: float = RADIUS_DEG, sigma_deg: float = SIGM
     """The probes (of ``among``, in its order; default all, ascending) where the vote is wrong: some candidate
     lands the probe, but the choice there with the probe left out of the vote does not (its neighbours point to a
     motion that fails on it)."""
+    from scipy.sparse import csr_matrix
+
     some = shelf.lands.any(axis=1)
     ps = np.flatnonzero(some) if among is None else np.asarray(among, dtype=int)[some[among]]
     cand_up = shelf.candidates()[0]
-    lands = shelf.lands.astype(float)
+    # sparse: a probe has a few hundred voters of thousands of probes, a candidate lands ~0.5 % of them (3 m shelf:
+    # 0.2 s where the dense product took 18 s; the same weights and sums, in another order)
+    lands = csr_matrix(shelf.lands.astype(float))
+    near_cos = math.cos(math.radians(min(radius_deg + 0.01, 180.0)))
     wrong = []
     for k in range(0, len(ps), 256):  # `Shelf.choose` for 256 probes at once: one product of weights and verdicts
         rows = ps[k:k + 256]
         u = shelf.probe_up[rows] / np.linalg.norm(shelf.probe_up[rows], axis=1, keepdims=True)
-        a = angles_deg(u, shelf.probe_up)
-        w = np.where(a <= radius_deg, np.exp(-0.5 * (a / sigma_deg) ** 2), 0.0)
-        w[np.arange(len(rows)), rows] = 0.0  # the probe's own vote left out
-        score = w @ lands
+        dots = np.clip(u @ shelf.probe_up.T, -1.0, 1.0)
+        i, j = np.nonzero(dots >= near_cos)
+        a = np.degrees(np.arccos(dots[i, j]))  # `angles_deg` where it may be within the radius
+        keep = (a <= radius_deg) & (j != rows[i])  # the probe's own vote left out
+        i, j, a = i[keep], j[keep], a[keep]
+        w = csr_matrix((np.exp(-0.5 * (a / sigma_deg) ** 2), (i, j)), shape=(len(rows), len(shelf.probe_up)))
+        score = (w @ lands).toarray()
         top = score.max(axis=1)
         tied = score >= top[:, None] * (1.0 - 1e-9)
         pick = np.argmin(np.where(tied, angles_deg(u, cand_up), np.inf), axis=1)  # ties to the nearest

@@ -452,7 +452,7 @@ def test_add_probes_near_misses_refines_only_where_the_vote_is_wrong(tmp_path):
     from felis.learning.landing.library_build import fibonacci_ups, misses
 
     out = tmp_path / "refined.json"
-    r = _felis("train", "landing-library", "--add-probes", "3000", "--heights", "3", "--probe-radius", "2",
+    r = _felis("train", "landing-library", "--add-probes", "1000", "--heights", "3", "--probe-radius", "2",
                "--near-misses", "--out", str(out), "--workdir", str(tmp_path / "ck"), "--workers", "2")
     assert r.returncode == 0, r.stderr
     base, refined = load_library(), load_library(out)
@@ -460,7 +460,7 @@ def test_add_probes_near_misses_refines_only_where_the_vote_is_wrong(tmp_path):
     wrong = misses(b3, base.radius_deg, b3.sigma_deg or base.sigma_deg)
     assert f"only near the {len(wrong)} probes where the vote missed" in r.stdout
     new_up = r3.probe_up[len(b3.probe_up):]
-    grid = fibonacci_ups(3000, 100.0)
+    grid = fibonacci_ups(1000, 100.0)
     grid = grid[np.degrees(np.arccos(np.clip(grid @ b3.probe_up.T, -1, 1))).min(axis=1) > 1e-3]
     nearest = np.argmax(grid @ b3.probe_up.T, axis=1)
     want = grid[np.isin(nearest, wrong)]
