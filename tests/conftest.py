@@ -6,6 +6,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 # slack on a pty is 10 ms; 40 ms here, for every bus a test or its subprocesses open without their own
 # (tests of timeouts give theirs). The product's default is unchanged.
 os.environ.setdefault("FELIS_TIMEOUT_MARGIN_MS", "40")
+# The same load can leave a host silent longer than the servos' 0.1 s deadman: the emulated servos keep their Bus
+# Watchdog on the wall clock, so a stalled test process trips it as it would a real servo (the run stops, rightly,
+# and the test fails for the machine's sake: teleop through two virtual buses did, in `make test`). Every run a test
+# starts arms a 1 s deadman; tests of the deadman itself set 0.1 s (`BUS_WATCHDOG_S`) themselves.
+os.environ.setdefault("FELIS_BUS_WATCHDOG_MS", "1000")
 
 from hypothesis import settings  # noqa: E402
 

@@ -44,20 +44,25 @@ every servo's Bus Watchdog (item 98, units of 20 ms). If the host then goes sile
 dead host, a pulled USB cable), each servo stops where it is within that time: it holds its present
 position and refuses goal writes (the item reads −1) until cleared. Disarming clears it (writes 0), and
 connecting clears one that a killed run left tripped (with a warning). ``bus_watchdog_s=None``
-disables it.
+disables it. ``$FELIS_BUS_WATCHDOG_MS`` (20…2540 ms) sets the default for every run on a host that cannot keep
+0.1 s (a slow single-board computer, a loaded test machine: `make test` sets 1 s); the servos still stop that long
+after the host's last packet.
 """
 
 from __future__ import annotations
 
+import math
+import os
 import time
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from felis.drivers.dynamixel.bus import CorruptReplyError, DynamixelBus, NoReplyError, ServoStatusError
 from felis.drivers.dynamixel.controltable import STATE_BLOCK, address, control_table, span
 from felis.drivers.imu import apply_mounting
-from felis.errors import CalibrationError, CommError, DescriptionError
+from felis.errors import CalibrationError, CommError, DescriptionError, ParameterError
 from felis.hal import Command, Faults, Imu, RobotBase, State
 from felis.servos import RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, STALL_CURRENT_A, hardware_error_names, servo_model
 from felis.spec import RobotSpec
@@ -79,6 +84,22 @@ _TICK_DTYPE = np.dtype([("torque", "u1"), ("hw", "u1"), ("watchdog", "u1"), ("cu
 BUS_WATCHDOG_S = 0.1  # the deadman: servos stop this long after the host's last packet
 SETUP_RETRIES = 4  # extra tries of a read every servo must answer (arming): one-off, so a noisy bus gets more
 WATCHDOG_TRIPPED = 0xFF  # Bus Watchdog reads -1 once tripped
+BUS_WATCHDOG_ENV = "FELIS_BUS_WATCHDOG_MS"
+
+
+def default_bus_watchdog_s() -> float:
+    """The deadman time a run arms (module doc): `BUS_WATCHDOG_S`, or ``$FELIS_BUS_WATCHDOG_MS`` where set (20…2540
+    ms, the item's range; rounded to its 20 ms units when written). A bad value is a `ParameterError` naming it."""
+    text = os.environ.get(BUS_WATCHDOG_ENV, "").strip()
+    if not text:
+        return BUS_WATCHDOG_S
+    try:
+        ms = float(text)
+    except ValueError:
+        ms = math.nan
+    if not (math.isfinite(ms) and 20 <= ms <= 127 * 20):
+        raise ParameterError(f"{BUS_WATCHDOG_ENV} must be 20…2540 (ms), got {text!r}")
+    return ms / 1000.0
 
 
 IMU_MAX_AGE_S = 0.1  # an IMU reading older than this is none (10 samples at 100 Hz; USB delivers in ~16 ms bursts)
@@ -118,6 +139,8 @@ class DynamixelRobot(RobotBase):
         imu_port: serial device of the BNO08x in UART-RVC mode (only if the description has an IMU).
         bus: an already-built `DynamixelBus` (tests, custom timeouts); ``port``/``baud`` are then ignored.
         retries: extra sync reads per tick for servos that did not answer.
+        bus_watchdog_s: the deadman time (module doc): ``"default"`` is `default_bus_watchdog_s` (0.1 s unless
+            ``$FELIS_BUS_WATCHDOG_MS``), None turns it off (a leader arm moved by hand).
     """
 
     realtime = True
@@ -125,8 +148,12 @@ class DynamixelRobot(RobotBase):
     def __init__(self, spec: RobotSpec, port: str, baud: int = 1_000_000, *, calibration: Calibration | None = None,
                  imu_port: str | None = None, bus: DynamixelBus | None = None, retries: int = 1,
                  fast_sync_read: bool = True, hardware_poll_s: float = 0.5,
-                 bus_watchdog_s: float | None = BUS_WATCHDOG_S, imu_required: bool = False):
+                 bus_watchdog_s: float | Literal["default"] | None = "default", imu_required: bool = False):
         super().__init__(spec)
+        if bus_watchdog_s == "default":
+            bus_watchdog_s = default_bus_watchdog_s()
+        elif bus_watchdog_s is not None and not 0.02 <= bus_watchdog_s <= 127 * 0.02:
+            raise ValueError(f"bus_watchdog_s must be within 0.02…2.54 s (or None), got {bus_watchdog_s}")
         self.bus = bus or DynamixelBus(port, baud, retries=retries, fast_sync_read=fast_sync_read)
         self.ids = [j.servo_id for j in spec.joints]
         self.imu_port = imu_port
@@ -161,8 +188,6 @@ class DynamixelRobot(RobotBase):
                                       else control_table(j.servo).item("position_p_gain").default
                                       for j in spec.joints], dtype=np.int64)  # Position P Gain as described
         self._p_sent = self._p_described  # what the servos hold; this very object: P as described (Command.stiffness)
-        if bus_watchdog_s is not None and not 0.02 <= bus_watchdog_s <= 127 * 0.02:
-            raise ValueError(f"bus_watchdog_s must be within 0.02…2.54 s (or None), got {bus_watchdog_s}")
         self.bus_watchdog_s = bus_watchdog_s
         self._deadman_on = False  # the Bus Watchdog is set on the servos
         self._indirect: dict[int, tuple[int, int]] = {}  # servo ID -> (Indirect Address 1, Indirect Data 1)

@@ -40,15 +40,17 @@ def _holds(proc, port: str) -> bool:
     return any(h.startswith(f"PID {proc.pid} ") for h in port_holders(port))
 
 
-def _env() -> dict:
+def _env(shipped_deadman: bool = False) -> dict:
     env = dict(os.environ, MUJOCO_GL="egl")
     env.setdefault("FELIS_TIMEOUT_MARGIN_MS", "40")  # a loaded 2-core machine: room for a scheduling hiccup
+    if shipped_deadman:  # the product's 0.1 s Bus Watchdog, not the suite's 1 s (tests/conftest.py)
+        env.pop("FELIS_BUS_WATCHDOG_MS", None)
     return env
 
 
-def _start(*args: str, cwd: Path) -> subprocess.Popen:
-    return subprocess.Popen([*FELIS, *args], cwd=cwd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+def _start(*args: str, cwd: Path, shipped_deadman: bool = False) -> subprocess.Popen:
+    return subprocess.Popen([*FELIS, *args], cwd=cwd, env=_env(shipped_deadman), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
 
 
 def _wait_for_log(proc: subprocess.Popen, log: Path, min_bytes: int = 30_000, timeout: float = 30.0) -> None:
@@ -164,7 +166,7 @@ def test_sigkill_leaves_the_servos_stopped_by_their_bus_watchdog(vbus, tmp_path)
     watchdog reading -1 (tripped), and the emulator measured each trip within the stated time."""
     log = tmp_path / "trot.mcap"
     proc = _start("run", "step-in-place", "--robot", "cat", "--backend", "dxl", "--port", vbus.port,
-                  "--duration", "30", "--log", str(log), cwd=tmp_path)
+                  "--duration", "30", "--log", str(log), cwd=tmp_path, shipped_deadman=True)
     _wait_for_log(proc, log, min_bytes=60_000)
     proc.kill()
     proc.communicate(timeout=20)
@@ -187,7 +189,7 @@ def test_sigkill_leaves_the_servos_stopped_by_their_bus_watchdog(vbus, tmp_path)
 def test_the_next_run_clears_a_tripped_bus_watchdog_with_a_warning(vbus, tmp_path):
     log = tmp_path / "a.mcap"
     proc = _start("run", "stand", "--robot", "cat", "--backend", "dxl", "--port", vbus.port, "--duration", "30",
-                  "--log", str(log), cwd=tmp_path)
+                  "--log", str(log), cwd=tmp_path, shipped_deadman=True)
     _wait_for_log(proc, log)
     proc.kill()
     proc.communicate(timeout=20)

@@ -237,6 +237,26 @@ def test_robot_arms_without_a_jump_and_reads_si(cat_bus):
     b.close()
 
 
+def test_the_deadman_time_comes_from_the_environment_and_a_bad_one_is_refused_before_the_port_opens(cat_bus,
+                                                                                                      monkeypatch):
+    """``$FELIS_BUS_WATCHDOG_MS`` sets the Bus Watchdog a run arms (the suite runs with 1 s: tests/conftest.py); unset,
+    the shipped 0.1 s; a value outside the item's 20…2540 ms is a one-line error, and the port stays free."""
+    monkeypatch.setenv("FELIS_BUS_WATCHDOG_MS", "300")
+    with _robot(cat_bus) as robot:
+        robot.arm()
+        robot.write(Command(q=robot.read().q))  # the first write after arming sets the deadman
+        assert [cat_bus.servo(i).get("bus_watchdog") for i in range(1, 13)] == [15] * 12  # 20 ms units
+    monkeypatch.delenv("FELIS_BUS_WATCHDOG_MS")
+    with _robot(cat_bus) as robot:
+        assert robot.bus_watchdog_s == 0.1
+    for bad in ("fast", "10", "3000", "nan", "-100"):
+        monkeypatch.setenv("FELIS_BUS_WATCHDOG_MS", bad)
+        with pytest.raises(ParameterError, match=f"FELIS_BUS_WATCHDOG_MS must be 20…2540 \\(ms\\), got '{bad}'"):
+            _robot(cat_bus)
+    with DynamixelBus(cat_bus.port, BAUD) as b:  # nothing was left holding the port
+        assert b.ping(1).model == "XL330-M288-T"
+
+
 def test_second_program_on_the_port_is_refused_naming_the_holder(cat_bus, bus):
     """The port is opened exclusively: a second client is one line naming the holder (this process)
     and never touches the line, so the first keeps working."""
