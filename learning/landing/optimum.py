@@ -316,9 +316,6 @@ def _init_worker() -> None:
     _worker_sim()
 
 
-_LIBRARIES: dict = {}  # per evaluator worker: the warm starts' libraries by path
-
-
 def _chunk_job(job) -> list[dict]:
     index, drops, settings = job
     settings = dict(settings)
@@ -328,10 +325,7 @@ def _chunk_job(job) -> list[dict]:
         from felis.learning.landing.library import load_library
 
         settings.pop("warm_sha256", None)
-        path = settings.pop("warm")
-        if path not in _LIBRARIES:
-            _LIBRARIES[path] = load_library(path)
-        settings["warm"] = _LIBRARIES[path]
+        settings["warm"] = load_library(settings.pop("warm"))  # parsed once per worker (`load_library` keeps it)
     return [o.as_dict() for o in optimise(drops, sim=sim, index=index, **settings)]
 
 

@@ -144,6 +144,21 @@ def test_a_library_reads_back_as_written_and_picks_the_nearer_height():
     assert back.shelf(1.2).height_m == 1.0 and back.shelf(2.0).height_m == 3.0 and back.shelf(8).height_m == 3.0
 
 
+def test_a_library_read_again_is_a_copy_and_a_changed_file_is_read_anew(tmp_path):
+    """`load_library` keeps the files it has read (a command reads one 2-3 times): each call gets its own copy, and
+    a file written since is parsed again."""
+    path = tmp_path / "lib.json"
+    path.write_text(json.dumps(MotionLibrary([_shelf()]).as_dict()))
+    a = load_library(path)
+    a.shelves[0].landed[:] = ~a.shelves[0].landed
+    a.shelves[0].x[0, 0] = 99.0
+    b = load_library(path)
+    assert np.array_equal(b.shelves[0].landed, _shelf().landed) and b.shelves[0].x[0, 0] == _shelf().x[0, 0]
+    path.write_text(json.dumps(MotionLibrary([_shelf(), Shelf(3.0, *[getattr(_shelf(), k) for k in (
+        "up", "x", "landed", "probe_up", "lands")])]).as_dict()) + " ")  # another size: another file
+    assert [s.height_m for s in load_library(path).shelves] == [1.0, 3.0]
+
+
 @pytest.mark.parametrize("edit, message", [
     (lambda d: d.update(format="x"), "not a landing motion library"),
     (lambda d: d.update(version=9), "library version 9 is not supported"),
@@ -152,6 +167,9 @@ def test_a_library_reads_back_as_written_and_picks_the_nearer_height():
     (lambda d: d["shelves"][0]["entries"][1].update(motion_x=[0.0] * 3), "shelf 0, entry 1: motion_x must be 55"),
     (lambda d: d["shelves"][0]["entries"][0].update(up=[0.0, 0.0, 2.0]), "every 'up' must be a unit vector"),
     (lambda d: d["shelves"][0]["probes"][2].update(lands=[7]), "shelf 0, probe 2: lands must be candidate ids 0…3"),
+    (lambda d: d["shelves"][0]["probes"][1].update(lands=[True]), "shelf 0, probe 1: lands must be candidate ids"),
+    (lambda d: d["shelves"][0]["probes"][0].update(up=[0.0, "z", 1.0]), "shelf 0, probe 0: up must be numbers"),
+    (lambda d: d["shelves"][0]["entries"][1].update(up=[0.0, float("nan"), 1.0]), "entry 1: up must be 3 finite"),
     (lambda d: d.update(sigma_deg=0), "radius_deg and sigma_deg must be positive"),
 ])
 def test_bad_library_files_are_one_line_naming_the_file(tmp_path, edit, message):
