@@ -227,8 +227,6 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
     `evaluate`'s, in every rollout (a drop counts as landed only if its motion lands the whole patch). ``warm``: a
     `felis.learning.landing.library.MotionLibrary` whose motions for each drop's attitude (`MotionLibrary.near`:
     its choice, then its candidates within ``warm_radius_deg``) join that drop's seeds (module doc)."""
-    import cma
-
     from felis.learning.landing.evaluate import BatchLandingSim
 
     if generations < 0 or population < 2 or restarts < 0:
@@ -263,7 +261,9 @@ def optimise(drops: Sequence[Drop], *, generations: int = GENERATIONS, populatio
             best_s[i], best_x[i], best_v[i] = sc[j], S[i][j], res[at + j][1]
             used[i] += len(S[i]) * runs
             at += len(S[i])
-        for start in range(restarts + 1):
+        for start in range(restarts + 1 if generations else 0):  # generations 0: the seeds alone
+            import cma  # ~2 s to import (it brings scipy.stats): only for a search
+
             active = [i for i in range(n) if not best_v[i].landed]
             es = {i: cma.CMAEvolutionStrategy(S[i][int(order[i][min(start, len(S[i]) - 1)])], SIGMA0,
                                               {"popsize": population, "bounds": [-1.0, 1.0], "verbose": -9,
