@@ -265,7 +265,7 @@ class DropBatch:
                 models = self._models
             self._pool.rollout(models, self._datas, np.ascontiguousarray(state[a]), c, nstep=per,
                                state=st, sensordata=sd, skip_checks=True,
-                               chunk_size=max(1, na // (self.nthread * 4)))
+                               chunk_size=max(1, na // (self.nthread * 16)))  # a thread waits ≤ 1/16 at the end
             # divergence: MuJoCo resets a cat whose state went non-finite (its time goes back)
             tnow = st[:, :, 0]
             bad = (np.diff(np.concatenate([t[a, None], tnow], axis=1), axis=1) <= 0).any(axis=1)
