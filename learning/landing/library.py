@@ -308,8 +308,6 @@ def load_library(path: str | Path = DEFAULT_LIBRARY) -> MotionLibrary:
     """A library file (module doc); every fault is one line naming the file. A file this process has read, unchanged
     since (same modification time and size), is not parsed again (the shipped library: ~0.5 s); each call returns
     its own copy, so a caller that edits one changes nothing another sees."""
-    import copy
-
     from felis.files import read_json
 
     path = Path(path)
@@ -319,7 +317,7 @@ def load_library(path: str | Path = DEFAULT_LIBRARY) -> MotionLibrary:
     except OSError:
         key = None  # read_json says why
     if key in _LOADED:
-        return copy.deepcopy(_LOADED[key])
+        return _copy(_LOADED[key])
     doc = read_json(path, "landing motion library", ParameterError, " (make one: felis train landing-library)")
     try:
         lib = library_from_dict(doc)
@@ -328,8 +326,22 @@ def load_library(path: str | Path = DEFAULT_LIBRARY) -> MotionLibrary:
     if key is not None:
         while len(_LOADED) >= _LOADED_KEEP:
             _LOADED.pop(next(iter(_LOADED)))
-        _LOADED[key] = copy.deepcopy(lib)
+        _LOADED[key] = _copy(lib)
     return lib
+
+
+def _copy(lib: MotionLibrary) -> MotionLibrary:
+    """``lib`` with nothing shared (`copy.deepcopy`'s result, ~10× faster: the entries' drops are flat records)."""
+    import copy
+
+    def record(d):
+        return {k: v if isinstance(v, str | int | float | bool | None) else copy.deepcopy(v) for k, v in d.items()} \
+            if isinstance(d, dict) else copy.deepcopy(d)
+
+    return MotionLibrary([Shelf(s.height_m, s.up.copy(), s.x.copy(), s.landed.copy(), s.probe_up.copy(),
+                                s.lands.copy(), None if s.drops is None else [record(d) for d in s.drops],
+                                s.sigma_deg) for s in lib.shelves], lib.radius_deg, lib.sigma_deg,
+                         copy.deepcopy(lib.meta))
 
 
 def is_library_file(path: str | Path) -> bool:
