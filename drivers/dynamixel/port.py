@@ -162,8 +162,9 @@ def candidate_ports() -> list[str]:
     return sorted(set(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*") + glob.glob("/dev/serial/by-id/*")))
 
 
-def _env_margin_ms() -> float:
-    text = os.environ["FELIS_TIMEOUT_MARGIN_MS"]
+def _env_margin_ms(environ=None) -> float:
+    """``$FELIS_TIMEOUT_MARGIN_MS`` (0…1000 ms) as a number; a bad value is a `ParameterError` naming it."""
+    text = (os.environ if environ is None else environ)["FELIS_TIMEOUT_MARGIN_MS"]
     try:
         v = float(text)
     except ValueError:

@@ -87,10 +87,10 @@ WATCHDOG_TRIPPED = 0xFF  # Bus Watchdog reads -1 once tripped
 BUS_WATCHDOG_ENV = "FELIS_BUS_WATCHDOG_MS"
 
 
-def default_bus_watchdog_s() -> float:
+def default_bus_watchdog_s(environ=None) -> float:
     """The deadman time a run arms (module doc): `BUS_WATCHDOG_S`, or ``$FELIS_BUS_WATCHDOG_MS`` where set (20…2540
     ms, the item's range; rounded to its 20 ms units when written). A bad value is a `ParameterError` naming it."""
-    text = os.environ.get(BUS_WATCHDOG_ENV, "").strip()
+    text = (os.environ if environ is None else environ).get(BUS_WATCHDOG_ENV, "").strip()
     if not text:
         return BUS_WATCHDOG_S
     try:

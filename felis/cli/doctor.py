@@ -2,8 +2,9 @@
 
 Checks: Python and package versions, MuJoCo offscreen rendering (in a child process, since a
 failing GL context can abort the process), a display for the viewer, USB serial adapters and the
-permission to open them, and the FTDI latency timer (16 ms by default caps a Dynamixel
-request/response loop near 60 Hz; 1 ms is the fix).
+permission to open them, the FTDI latency timer (16 ms by default caps a Dynamixel
+request/response loop near 60 Hz; 1 ms is the fix), and the ``FELIS_*`` settings in the environment that change
+how a run drives servos (a Bus Watchdog looser than the shipped 0.1 s is a warning).
 """
 
 from __future__ import annotations
@@ -116,8 +117,38 @@ def check_latency(sysfs: str = "/sys/bus/usb-serial/devices") -> list[Check]:
     return out
 
 
+def check_environment(environ=None) -> list[Check]:
+    """One check per ``FELIS_*`` bus setting that is set (none: nothing to say)."""
+    from felis.drivers.dynamixel.port import _env_margin_ms
+    from felis.drivers.dynamixel.robot import BUS_WATCHDOG_ENV, BUS_WATCHDOG_S, default_bus_watchdog_s
+    from felis.errors import ParameterError
+
+    env = os.environ if environ is None else environ
+    out = []
+    if env.get(BUS_WATCHDOG_ENV, "").strip():
+        try:
+            s = default_bus_watchdog_s(env)
+        except ParameterError as e:
+            out.append(Check(BUS_WATCHDOG_ENV, FAIL, f"{e}: every run on servos refuses to start",
+                             f"unset {BUS_WATCHDOG_ENV} (the shipped {BUS_WATCHDOG_S:g} s), or give 20…2540"))
+        else:
+            detail = f"servos stop {s:g} s after the host's last packet (shipped {BUS_WATCHDOG_S:g} s)"
+            out.append(Check(BUS_WATCHDOG_ENV, WARN, detail, f"unset {BUS_WATCHDOG_ENV} for the shipped deadman")
+                       if s > BUS_WATCHDOG_S else Check(BUS_WATCHDOG_ENV, INFO, detail))
+    if env.get("FELIS_TIMEOUT_MARGIN_MS"):
+        try:
+            ms = _env_margin_ms(env)
+        except ParameterError as e:
+            out.append(Check("FELIS_TIMEOUT_MARGIN_MS", FAIL, f"{e}: every bus refuses to open",
+                             "unset FELIS_TIMEOUT_MARGIN_MS (10 ms on a pty, 4 ms on a USB adapter), or give 0…1000"))
+        else:
+            out.append(Check("FELIS_TIMEOUT_MARGIN_MS", INFO, f"every reply timeout gets {ms:g} ms of slack "
+                             "(default 10 ms on a pty, 4 ms on a USB adapter)"))
+    return out
+
+
 def run_checks() -> list[Check]:
-    return [*check_versions(), check_gl(), check_display(), *check_serial(), *check_latency()]
+    return [*check_versions(), check_gl(), check_display(), *check_serial(), *check_latency(), *check_environment()]
 
 
 def as_json(checks: list[Check]) -> list[dict]:

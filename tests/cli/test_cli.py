@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from felis.cli.doctor import FAIL, INFO, OK, WARN, check_latency, check_serial
+from felis.cli.doctor import FAIL, INFO, OK, WARN, check_environment, check_latency, check_serial
 
 G = 9.81
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -114,6 +114,7 @@ def test_doctor_json(tmp_path):
     # the subprocess runs without DISPLAY/WAYLAND_DISPLAY: the viewer cannot open, not an error
     assert by_name["display"]["status"] == WARN
     assert "sim render" in by_name["display"]["fix"]
+    assert by_name["FELIS_BUS_WATCHDOG_MS"]["status"] == WARN  # the suite's 1 s (tests/conftest.py)
     serial = [c for c in checks if c["name"] == "serial ports" or c["name"].startswith("serial /dev/")]
     assert serial, "no serial-port check"
     failed = [c for c in checks if c["status"] == FAIL]
@@ -149,6 +150,19 @@ def test_check_latency_fake_sysfs(tmp_path):
     assert "echo 1" in fail.fix and str(slow) in fail.fix
     assert by_name["latency ttyUSB1"].status == OK
     assert by_name["latency ttyUSB2"].status == WARN
+
+
+def test_check_environment_names_each_bus_setting_and_warns_of_a_looser_deadman():
+    assert check_environment({}) == [] and check_environment({"FELIS_BUS_WATCHDOG_MS": " "}) == []
+    (wd,) = check_environment({"FELIS_BUS_WATCHDOG_MS": "1000"})
+    assert wd.status == WARN and "stop 1 s after" in wd.detail and "shipped 0.1 s" in wd.detail and wd.fix
+    (wd,) = check_environment({"FELIS_BUS_WATCHDOG_MS": "60"})
+    assert wd.status == INFO and "0.06 s" in wd.detail
+    bad, margin = check_environment({"FELIS_BUS_WATCHDOG_MS": "5", "FELIS_TIMEOUT_MARGIN_MS": "40"})
+    assert bad.status == FAIL and "must be 20…2540" in bad.detail and "unset" in bad.fix
+    assert margin.status == INFO and "40 ms of slack" in margin.detail
+    (bad,) = check_environment({"FELIS_TIMEOUT_MARGIN_MS": "lots"})
+    assert bad.status == FAIL and "must be 0…1000" in bad.detail and bad.fix
 
 
 def test_check_serial_none():
