@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from felis.cli import output
-from felis.cli.args import group
+from felis.cli.args import group, has_checkpoints, refuse_to_overwrite, restart_option
 from felis.errors import ParameterError, TrajectoryError
 
 DEFAULT_OUT = Path("runs/train-ik/ik.npz")
@@ -49,6 +49,7 @@ def register_train(train_sub) -> None:
     t.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"weights file (.npz; default {DEFAULT_OUT})")
     t.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the weights)")
     t.add_argument("--resume", action="store_true", help="continue from the checkpoints in --workdir")
+    restart_option(t)
     t.add_argument("--corpus", type=int, default=d.corpus, help=f"demonstration trajectories (default {d.corpus})")
     t.add_argument("--corpus-seed", type=int, default=d.corpus_seed, help=f"corpus seed (default {d.corpus_seed})")
     t.add_argument("--seed", type=int, default=d.seed, help=f"training seed (default {d.seed})")
@@ -132,6 +133,7 @@ def cmd_train_ik(args) -> int:
     workdir = args.workdir or args.out.with_suffix(".ckpt")
     if args.resume and not workdir.is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
+    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir))
     quiet = args.json or not sys.stderr.isatty()
     bar = output.bar(quiet=quiet, field="loss", transient=False)
     tasks: dict[str, int] = {}

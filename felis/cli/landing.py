@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from felis.cli import output
-from felis.cli.args import live_option
+from felis.cli.args import has_checkpoints, live_option, refuse_to_overwrite, restart_option
 from felis.errors import ParameterError
 from felis.learning.landing.designs import DESIGNS
 
@@ -33,6 +33,7 @@ def register_train(train_sub) -> None:
                    help=f"policy file (.npz; default {DEFAULT_TRAIN_OUT})")
     t.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the policy)")
     t.add_argument("--resume", action="store_true", help="continue from the checkpoint in --workdir")
+    restart_option(t)
     t.add_argument("--seed", type=int, default=d.seed, help=f"seed (default {d.seed})")
     t.add_argument("--population", type=int, default=d.population, help=f"individuals per population "
                    f"(default {d.population})")
@@ -95,6 +96,7 @@ def register_train(train_sub) -> None:
     b.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
     b.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the library)")
     b.add_argument("--resume", action="store_true", help="continue from the checkpoints in --workdir")
+    restart_option(b)
     b.add_argument("--workers", type=int, help="processes for the search, threads for the probes (default: every "
                    "core)")
     b.add_argument("--ray-address", metavar="ADDRESS|auto|local", help="search on a Ray cluster (felis[cluster])")
@@ -150,6 +152,7 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--checkpoint", type=Path, metavar="DIR",
                    help="optimum: append each finished drop to DIR/optimum.jsonl (with --resume: skip those)")
     e.add_argument("--resume", action="store_true", help="optimum: continue from --checkpoint DIR")
+    restart_option(e, "--checkpoint DIR")
     e.add_argument("--late-ticks", type=int, default=0, metavar="K",
                    help="optimum: a motion counts only if it also lands started 1..K ticks late (a servo bus's "
                    "latency and jitter; default 0)")
@@ -201,6 +204,7 @@ def cmd_train_landing(args) -> int:
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not (Path(workdir) / "checkpoint.npz").is_file():
         raise ParameterError(f"--resume: no checkpoint in {workdir}")
+    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir, "checkpoint.npz"))
     quiet = args.json or not sys.stderr.isatty()
     bar = output.bar(quiet=quiet, field="info", transient=False)
     tasks: dict[str, int] = {}
@@ -287,6 +291,7 @@ def cmd_train_library(args) -> int:
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
+    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir))
     bar, progress = _stage_bar()
     with bar:
         lib = build_library(args.heights, grid=args.grid, probes=args.probes, max_tilt_deg=args.max_tilt,
@@ -393,6 +398,7 @@ def _base_and_workdir(args, out: Path):
     workdir = args.workdir or out.with_suffix(".ckpt")
     if args.resume and not Path(workdir).is_dir():
         raise ParameterError(f"--resume: no checkpoints in {workdir}")
+    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir))
     return base, lib, workdir
 
 
@@ -485,7 +491,7 @@ def cmd_eval_landing(args) -> int:
 
 def _eval_optimum(args, drops) -> int:
     from felis.learning.landing.evaluate import by_tilt
-    from felis.learning.landing.optimum import optimise_all
+    from felis.learning.landing.optimum import CHECKPOINT, optimise_all
 
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be ≥ 1, got {args.workers}")
@@ -503,6 +509,12 @@ def _eval_optimum(args, drops) -> int:
         from felis.learning.landing.library import DEFAULT_LIBRARY
 
         warm = str(DEFAULT_LIBRARY)
+    if args.checkpoint is not None:  # after the inputs' own faults (a bad --warm-start file is its own line)
+        if warm is not None:
+            from felis.learning.landing.library import load_library
+
+            load_library(warm)  # kept: the search reads it again for free
+        refuse_to_overwrite(args.checkpoint, args.resume, args.restart, has_checkpoints(args.checkpoint, CHECKPOINT))
     quiet = args.json or not sys.stderr.isatty()
     bar, step = output.progress(len(drops), "drops", quiet)
     with bar:

@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 from felis.cli import output
-from felis.cli.args import group
+from felis.cli.args import group, has_checkpoints, refuse_to_overwrite, restart_option
 from felis.errors import ParameterError
 
 
@@ -143,6 +143,7 @@ def register_train(train_sub) -> None:
                    "(default: record the default schedules now, ≈ 10 s)")
     t.add_argument("--workdir", type=Path, help="checkpoints (default: <out>.ckpt/ beside the weights)")
     t.add_argument("--resume", action="store_true", help="continue from the checkpoint in --workdir")
+    restart_option(t)
     t.add_argument("--epochs", type=int, default=d.epochs, help=f"epochs (default {d.epochs})")
     t.add_argument("--window", type=int, default=d.window, help=f"frames per window (default {d.window})")
     t.add_argument("--phases", type=int, default=d.n_phases, help=f"phase channels M (default {d.n_phases})")
@@ -187,6 +188,7 @@ def cmd_train_phase(args) -> int:
     workdir = Path(args.workdir or out.with_suffix(".ckpt"))
     if args.resume and not (workdir / "checkpoint.npz").is_file():
         raise ParameterError(f"--resume: no checkpoint in {workdir}")
+    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir, "checkpoint.npz"))
     quiet = args.json or not sys.stderr.isatty()
     bar, step = output.progress(cfg.epochs, "epochs", quiet, lines=not args.json)
     last = [0]

@@ -245,6 +245,7 @@ def test_the_deadman_time_comes_from_the_environment_and_a_bad_one_is_refused_be
     with _robot(cat_bus) as robot:
         robot.arm()
         robot.write(Command(q=robot.read().q))  # the first write after arming sets the deadman
+        robot.read()  # a round trip: the bus has served the write (the emulator's thread answers in order)
         assert [cat_bus.servo(i).get("bus_watchdog") for i in range(1, 13)] == [15] * 12  # 20 ms units
     monkeypatch.delenv("FELIS_BUS_WATCHDOG_MS")
     with _robot(cat_bus) as robot:

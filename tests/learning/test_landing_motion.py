@@ -164,6 +164,30 @@ def test_optimum_warm_start_through_the_command(tmp_path):
         assert len(bad.stderr.strip().splitlines()) == 1, bad.stderr
 
 
+def test_a_long_run_refuses_to_overwrite_an_earlier_runs_checkpoints_without_resume_or_restart(tmp_path):
+    """`--checkpoint DIR` that an earlier optimum run wrote: without --resume or --restart the run is one line and
+    the checkpoint stays as it was; --restart starts over (the same drop: the same file); both flags are refused.
+    `felis train landing`, `landing-library`, `ik` and `phase` share the rule (`felis.cli.args.refuse_to_overwrite`)."""
+    drops = tmp_path / "drops.json"
+    drops.write_text(json.dumps([{"roll_deg": 0, "pitch_deg": 0, "yaw_deg": 0, "height_m": 0.5}]))
+    ck = tmp_path / "ck"
+    base = ("eval", "landing", "--policy", "optimum", "--drops", str(drops), "--generations", "0", "--json",
+            "--workers", "1", "--checkpoint", str(ck))
+    r = _felis(*base)
+    assert r.returncode == 0, r.stderr
+    before = (ck / "optimum.jsonl").read_bytes()
+    again = _felis(*base)
+    assert again.returncode != 0 and len(again.stderr.strip().splitlines()) == 1, again.stderr
+    assert f"{ck} holds the checkpoints of an earlier run: --resume continues it, --restart" in again.stderr
+    assert (ck / "optimum.jsonl").read_bytes() == before
+    both = _felis(*base, "--resume", "--restart")
+    assert both.returncode != 0 and "give one of them" in both.stderr and len(both.stderr.strip().splitlines()) == 1
+    fresh = _felis(*base, "--restart")
+    assert fresh.returncode == 0, fresh.stderr
+    assert json.loads(fresh.stdout)["landed"] == json.loads(r.stdout)["landed"]
+    assert (ck / "optimum.jsonl").read_bytes() == before
+
+
 def test_a_finer_physics_step_through_the_command(tmp_path):
     """`felis eval landing --timestep MS`: the drops run at that physics step (equal to `run_drops(timestep=)`, and
     not to the model's 1 ms: the impact is resolved differently), the result says so; the optimum searches at it and
