@@ -158,10 +158,9 @@ def open_bus(args, *, sim: bool = False, retries: int = 1, quiet_check: bool = T
                                              quiet_check=quiet_check, trace=trace))
 
 
-# ----------------------------------------------------------------------------- command groups
 # ----------------------------------------------------------------------------- long runs
 def restart_option(sp, where: str = "--workdir") -> None:
-    """``--restart`` for a command that checkpoints into ``where`` (see `refuse_to_overwrite`)."""
+    """``--restart`` for a command that checkpoints into ``where`` (see `check_checkpoints`)."""
     sp.add_argument("--restart", action="store_true",
                     help=f"start over, replacing the checkpoints an earlier run left in {where} (a run refuses to "
                          "otherwise: --resume continues them)")
@@ -175,17 +174,20 @@ def has_checkpoints(folder: Path, marker: str | None = None) -> bool:
     return folder.is_dir() and any(folder.iterdir())
 
 
-def refuse_to_overwrite(folder: Path, resume: bool, restart: bool, found: bool) -> None:
-    """A long run's checkpoints are hours of work: where an earlier run left them (``found``), a run starts only with
-    ``--resume`` (continue them) or ``--restart`` (start over, replacing them); a forgotten flag is one line, not a
-    lost night. Both flags at once are refused too."""
+def check_checkpoints(folder: Path, resume: bool, restart: bool, found: bool) -> None:
+    """``--resume`` needs an earlier run's checkpoints in ``folder`` (``found``). And they are hours of work: where
+    they are, a run starts only with ``--resume`` (continue them) or ``--restart`` (start over, replacing them); a
+    forgotten flag is one line, not a lost night. Both flags at once are refused too."""
     if resume and restart:
         raise ParameterError("--resume continues the checkpointed run and --restart replaces it: give one of them")
+    if resume and not found:
+        raise ParameterError(f"--resume: no checkpoint in {folder}")
     if found and not (resume or restart):
         raise ParameterError(f"{folder} holds the checkpoints of an earlier run: --resume continues it, --restart "
                              "starts over and replaces them")
 
 
+# ----------------------------------------------------------------------------- command groups
 def group(sub, name: str, help: str, dest: str, metavar: str, **kw):
     """A command with sub-commands (``felis sim drop``); without one it is a usage error. Returns the
     group's sub-parsers action."""

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from felis.cli import output
-from felis.cli.args import group, has_checkpoints, refuse_to_overwrite, restart_option
+from felis.cli.args import check_checkpoints, group, has_checkpoints, restart_option
 from felis.errors import ParameterError, TrajectoryError
 
 DEFAULT_OUT = Path("runs/train-ik/ik.npz")
@@ -131,9 +131,7 @@ def cmd_train_ik(args) -> int:
     cfg.check()
     _check_out(args.out)
     workdir = args.workdir or args.out.with_suffix(".ckpt")
-    if args.resume and not workdir.is_dir():
-        raise ParameterError(f"--resume: no checkpoints in {workdir}")
-    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir))
+    check_checkpoints(workdir, args.resume, args.restart, has_checkpoints(workdir))
     quiet = args.json or not sys.stderr.isatty()
     bar = output.bar(quiet=quiet, field="loss", transient=False)
     tasks: dict[str, int] = {}

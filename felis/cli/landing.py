@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from felis.cli import output
-from felis.cli.args import has_checkpoints, live_option, refuse_to_overwrite, restart_option
+from felis.cli.args import check_checkpoints, has_checkpoints, live_option, restart_option
 from felis.errors import ParameterError
 from felis.learning.landing.designs import DESIGNS
 
@@ -202,9 +202,7 @@ def cmd_train_landing(args) -> int:
         raise ParameterError(f"{out}: a landing policy file must end in .npz")
     check_target(out, "landing policy", ParameterError)
     workdir = args.workdir or out.with_suffix(".ckpt")
-    if args.resume and not (Path(workdir) / "checkpoint.npz").is_file():
-        raise ParameterError(f"--resume: no checkpoint in {workdir}")
-    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir, "checkpoint.npz"))
+    check_checkpoints(workdir, args.resume, args.restart, has_checkpoints(workdir, "checkpoint.npz"))
     quiet = args.json or not sys.stderr.isatty()
     bar = output.bar(quiet=quiet, field="info", transient=False)
     tasks: dict[str, int] = {}
@@ -289,9 +287,7 @@ def cmd_train_library(args) -> int:
     if not (math.isfinite(args.patch) and args.patch >= 0):
         raise ParameterError(f"--patch must be ≥ 0 degrees, got {args.patch}")
     workdir = args.workdir or out.with_suffix(".ckpt")
-    if args.resume and not Path(workdir).is_dir():
-        raise ParameterError(f"--resume: no checkpoints in {workdir}")
-    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir))
+    check_checkpoints(workdir, args.resume, args.restart, has_checkpoints(workdir))
     bar, progress = _stage_bar()
     with bar:
         lib = build_library(args.heights, grid=args.grid, probes=args.probes, max_tilt_deg=args.max_tilt,
@@ -396,9 +392,7 @@ def _base_and_workdir(args, out: Path):
     base = args.base or DEFAULT_LIBRARY
     lib = load_library(base)
     workdir = args.workdir or out.with_suffix(".ckpt")
-    if args.resume and not Path(workdir).is_dir():
-        raise ParameterError(f"--resume: no checkpoints in {workdir}")
-    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir))
+    check_checkpoints(workdir, args.resume, args.restart, has_checkpoints(workdir))
     return base, lib, workdir
 
 
@@ -514,7 +508,7 @@ def _eval_optimum(args, drops) -> int:
             from felis.learning.landing.library import load_library
 
             load_library(warm)  # kept: the search reads it again for free
-        refuse_to_overwrite(args.checkpoint, args.resume, args.restart, has_checkpoints(args.checkpoint, CHECKPOINT))
+        check_checkpoints(args.checkpoint, args.resume, args.restart, has_checkpoints(args.checkpoint, CHECKPOINT))
     quiet = args.json or not sys.stderr.isatty()
     bar, step = output.progress(len(drops), "drops", quiet)
     with bar:

@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 from felis.cli import output
-from felis.cli.args import group, has_checkpoints, refuse_to_overwrite, restart_option
+from felis.cli.args import check_checkpoints, group, has_checkpoints, restart_option
 from felis.errors import ParameterError
 
 
@@ -186,9 +186,7 @@ def cmd_train_phase(args) -> int:
     if not 0 < args.scale <= 10:
         raise ParameterError(f"--scale must be within 0…10, got {args.scale:g}")
     workdir = Path(args.workdir or out.with_suffix(".ckpt"))
-    if args.resume and not (workdir / "checkpoint.npz").is_file():
-        raise ParameterError(f"--resume: no checkpoint in {workdir}")
-    refuse_to_overwrite(workdir, args.resume, args.restart, has_checkpoints(workdir, "checkpoint.npz"))
+    check_checkpoints(workdir, args.resume, args.restart, has_checkpoints(workdir, "checkpoint.npz"))
     quiet = args.json or not sys.stderr.isatty()
     bar, step = output.progress(cfg.epochs, "epochs", quiet, lines=not args.json)
     last = [0]

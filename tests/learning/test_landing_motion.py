@@ -167,7 +167,7 @@ def test_optimum_warm_start_through_the_command(tmp_path):
 def test_a_long_run_refuses_to_overwrite_an_earlier_runs_checkpoints_without_resume_or_restart(tmp_path):
     """`--checkpoint DIR` that an earlier optimum run wrote: without --resume or --restart the run is one line and
     the checkpoint stays as it was; --restart starts over (the same drop: the same file); both flags are refused.
-    `felis train landing`, `landing-library`, `ik` and `phase` share the rule (`felis.cli.args.refuse_to_overwrite`)."""
+    `felis train landing`, `landing-library`, `ik` and `phase` share the rule (`felis.cli.args.check_checkpoints`)."""
     drops = tmp_path / "drops.json"
     drops.write_text(json.dumps([{"roll_deg": 0, "pitch_deg": 0, "yaw_deg": 0, "height_m": 0.5}]))
     ck = tmp_path / "ck"
@@ -180,6 +180,9 @@ def test_a_long_run_refuses_to_overwrite_an_earlier_runs_checkpoints_without_res
     assert again.returncode != 0 and len(again.stderr.strip().splitlines()) == 1, again.stderr
     assert f"{ck} holds the checkpoints of an earlier run: --resume continues it, --restart" in again.stderr
     assert (ck / "optimum.jsonl").read_bytes() == before
+    nothing = _felis(*base[:-1], str(tmp_path / "none"), "--resume")
+    assert nothing.returncode != 0
+    assert nothing.stderr.strip() == f"error: --resume: no checkpoint in {tmp_path / 'none'}"
     both = _felis(*base, "--resume", "--restart")
     assert both.returncode != 0 and "give one of them" in both.stderr and len(both.stderr.strip().splitlines()) == 1
     fresh = _felis(*base, "--restart")
