@@ -162,7 +162,10 @@ def candidate_ports() -> list[str]:
     return sorted(set(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*") + glob.glob("/dev/serial/by-id/*")))
 
 
-def _env_margin_ms(environ=None) -> float:
+MARGIN_MS_PTY, MARGIN_MS_USB = 10.0, 4.0  # reply-timeout slack without $FELIS_TIMEOUT_MARGIN_MS
+
+
+def env_margin_ms(environ=None) -> float:
     """``$FELIS_TIMEOUT_MARGIN_MS`` (0…1000 ms) as a number; a bad value is a `ParameterError` naming it."""
     text = (os.environ if environ is None else environ)["FELIS_TIMEOUT_MARGIN_MS"]
     try:
@@ -221,7 +224,8 @@ class BusPort:
         lat = latency_timer_ms(self.port_name)
         self._latency_ms = 0.0 if pty else float(lat if lat is not None else sdk.port_handler.LATENCY_TIMER)
         if self._margin_ms is None:
-            self._margin_ms = _env_margin_ms() if os.environ.get("FELIS_TIMEOUT_MARGIN_MS") else 10.0 if pty else 4.0
+            self._margin_ms = (env_margin_ms() if os.environ.get("FELIS_TIMEOUT_MARGIN_MS")
+                               else MARGIN_MS_PTY if pty else MARGIN_MS_USB)
         return self
 
     def close(self) -> None:
