@@ -3,7 +3,8 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# make test runs the suite on every core (pytest-xdist); TEST_WORKERS=0 runs it in one process.
+# make test runs the suite on every core (pytest-xdist; an idle worker takes tests queued on a busy one, worksteal);
+# TEST_WORKERS=0 runs it in one process.
 TEST_WORKERS ?= auto
 
 .PHONY: demo test test-slow test-rerun bench ik-study landing-study lint clean
@@ -18,7 +19,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check --quiet .
-	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m pytest -q -n $(TEST_WORKERS)
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m pytest -q -n $(TEST_WORKERS) $$(test "$(TEST_WORKERS)" = 0 || echo --dist worksteal)
 
 test-slow: $(STAMP)
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m pytest -q -m slow

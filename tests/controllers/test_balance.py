@@ -466,10 +466,11 @@ def test_felis_train_balance_tiny(tmp_path, capsys):
     from felis.learning.balance.selector import KnnSelector
 
     out = tmp_path / "sel.npz"
-    assert main(["train", "balance", "--pushes", "random:40", "--seed", "2", "--workers", "2", "--out", str(out),
+    # 24 pushes give 20 demonstrations (a push some reaction recovers) on this machine; 40 took 30 s of 2 cores
+    assert main(["train", "balance", "--pushes", "random:24", "--seed", "2", "--workers", "2", "--out", str(out),
                  "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
-    assert res["demonstrations"] >= 20 and set(res["held_out_accuracy"]) >= {"knn", "svm"}
+    assert res["demonstrations"] >= 15 and set(res["held_out_accuracy"]) >= {"knn", "svm"}
     assert json.loads(out.with_suffix(".results.json").read_text()) == res
     sel = KnnSelector.load(out, feature_names=FEATURES)
     assert sel(np.zeros(len(FEATURES))) in REACTIONS

@@ -551,10 +551,12 @@ def test_on_a_paw_of_the_design_study_the_shipped_library_reaches_its_share_of_t
     doc = json.loads((DEFAULT_LIBRARY.parent / f"landing_optimum_warm_{design}-{height:g}m{tail}.json").read_text())
     assert doc["design"] == design and doc["search"]["warm_start"] == "library" and doc["landed"] == want
     assert doc.get("timestep_ms") == step
-    r = _felis("eval", "landing", "--design", design, "--drops", "random:100", "--seed", "0", "--height",
-               f"{height:g}", "--json", *(() if step is None else ("--timestep", f"{step:g}")))
-    assert r.returncode == 0, r.stderr
-    lib = [o["landed"] for o in json.loads(r.stdout)["drops"]]
+    from felis.learning.landing.evaluate import run_drops
+
+    # what `felis eval landing --design D --drops random:100 --seed 0 --height H [--timestep STEP]` runs, in process
+    drops = random_drops(100, seed=0, heights=height)
+    lib = [o.landed for o in run_drops(drops, "library", design=design,
+                                       timestep=None if step is None else step / 1000.0)]
     assert all(o["landed"] for o, landed in zip(doc["drops"], lib, strict=True) if landed)
     assert round(100 * sum(lib) / want) == share
 
