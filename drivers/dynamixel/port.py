@@ -9,6 +9,18 @@ Exclusive open: an ``flock(LOCK_EX)`` on the device before the SDK touches it, t
 descriptor; a refused open names the holder, found through ``/proc/locks`` (else every process that has the
 device open). The module functions check a path before opening it (`check_port_path`), list candidate
 adapters (`candidate_ports`) and give the FTDI latency-timer fix (`latency_fix`).
+
+Waiting, not spinning: the SDK opens the port with pyserial's ``timeout=0`` and calls ``readPort`` in a loop until
+the reply is whole or its packet timeout passes, so every transaction held a core at 100 % for its whole wait
+(a broadcast ping's ~0.8 s per baud rate; on a 2-core host, the core an emulated bus or the control loop needed).
+`WaitingPortHandler`, the SDK's port handler with that one method changed, lets the SDK's loop spin for the first
+`SPIN_MS` after the request or after the last bytes came (a reply that close behind, or the next servo's reply of
+a sync read, is read at once: sleeping and waking cost ~25 µs a wait against the emulated bus's ~150 µs
+transaction) and then, while nothing has arrived, waits on the descriptor
+(``select``) until the next byte or the packet's deadline: a reply is read as soon as it comes, and the SDK's own
+timeout check runs as before (at most `WAIT_CAP_S` late). A USB adapter's replies come after its latency timer
+(1 ms at best, 16 ms by default), a missing servo's never: that wait no longer costs a core. The SDK itself is
+unmodified.
 """
 
 from __future__ import annotations
@@ -19,6 +31,7 @@ import fcntl
 import glob
 import math
 import os
+import select
 import stat
 import termios
 import threading
@@ -31,6 +44,30 @@ import serial
 
 from felis.drivers.imu.frames import looks_like_rvc
 from felis.errors import CommError, ParameterError, PortError
+
+SPIN_MS = 1.0  # a reply's bytes looked for without sleeping this long after the request or the last bytes
+WAIT_CAP_S = 0.005  # the longest one wait for a reply's bytes before the SDK's loop looks at its timeout again
+
+
+class WaitingPortHandler(sdk.PortHandler):
+    """dynamixel-sdk's ``PortHandler`` whose ``readPort`` waits for bytes, `SPIN_MS` after the request and the
+    last bytes, instead of returning none at once (module doc). ``packet_timeout`` and ``getTimeSinceStart`` are
+    the SDK's: ms since the request was sent."""
+
+    _last_rx = 0.0  # time.perf_counter() of the last read that returned bytes
+
+    def readPort(self, length):
+        ser = self.ser
+        if ser.in_waiting == 0:
+            since_ms = self.getTimeSinceStart()
+            left_s = (self.packet_timeout - since_ms) / 1000.0
+            if left_s > 0 and since_ms > SPIN_MS and time.perf_counter() - self._last_rx > SPIN_MS / 1000.0:
+                select.select([ser.fileno()], [], [], min(left_s, WAIT_CAP_S))
+        data = ser.read(length)
+        if data:
+            self._last_rx = time.perf_counter()
+        return data
+
 
 SDK_BAUDS = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)  # both SDK and servo support
 
@@ -207,7 +244,7 @@ class BusPort:
             return self
         check_port_path(self.port_name)
         self._lock_fd = lock_port(self.port_name)
-        port = sdk.PortHandler(self.port_name)
+        port = WaitingPortHandler(self.port_name)
         port.baudrate = self.baud
         try:
             port.openPort()

@@ -173,6 +173,20 @@ def test_scan_finds_exactly_the_configured_servos_at_their_baud_rates():
         assert sorted((f.id, f.baud) for f in by_id) == [(1, 57600), (7, 1_000_000)]
 
 
+def test_waiting_for_a_reply_does_not_spin_a_core(cat_bus, bus):
+    """The SDK opens the port with pyserial's timeout=0 and calls readPort in a loop until the reply or its timeout:
+    it used to hold a core for the whole wait. Unicast pings of an ID no servo has (each waits out its timeout) and a
+    broadcast ping at a baud rate no servo uses (the SDK waits ~0.8 s for 253 IDs): the thread's CPU time is a small
+    part of the time it waited (spinning, it was all of it), and the servos are still found."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    for _ in range(10):
+        assert bus.try_ping(200) is None
+    assert bus.scan(bauds=[57600]) == []
+    waited, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    assert waited > 0.5 and cpu < 0.25 * waited, (waited, cpu)
+    assert sorted(f.id for f in bus.scan(bauds=[BAUD])) == sorted(j.servo_id for j in load_spec("cat").joints)
+
+
 # --------------------------------------------------------------------------------- faults
 def test_corrupted_replies_never_yield_wrong_numbers(cat_bus, bus):
     cat_bus.faults.corrupt = 0.3

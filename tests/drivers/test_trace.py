@@ -21,6 +21,7 @@ import pytest
 from felis.cli.main import main
 from felis.drivers.dynamixel import protocol as P
 from felis.drivers.dynamixel.bus import DynamixelBus
+from felis.drivers.dynamixel.port import WaitingPortHandler
 from felis.drivers.dynamixel.trace import PacketTrace, TracedBus
 from felis.drivers.virtual import VirtualBus
 from felis.spec import load_spec
@@ -122,8 +123,8 @@ def test_no_trace_leaves_the_sdk_port_alone_and_a_trace_wraps_it(tmp_path):
     with VirtualBus.for_models(["XL330-M288-T"], baud=BAUD) as vb:
         with DynamixelBus(vb.port, BAUD) as b:
             port = b._port
-            assert port.writePort.__func__ is sdk.PortHandler.writePort
-            assert port.readPort.__func__ is sdk.PortHandler.readPort
+            assert isinstance(port, sdk.PortHandler) and port.writePort.__func__ is sdk.PortHandler.writePort
+            assert port.readPort.__func__ is WaitingPortHandler.readPort  # the SDK's, waiting instead of spinning
         trace = tmp_path / "t.trace"
         with PacketTrace(trace) as tr, TracedBus(vb.port, BAUD, trace=tr) as b:
             assert not hasattr(b._port.writePort, "__func__")
