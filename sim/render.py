@@ -88,7 +88,8 @@ class VideoRecorder:
         return self.renderer.render()
 
     def _draw_path(self, scn) -> None:
-        """The markers as a polyline: one line geom per segment, as many as the scene has room for."""
+        """The markers as a polyline: one line geom per segment, as many as the scene has room for (one point alone
+        is no segment: nothing is drawn)."""
         line = mujoco.mjtGeom.mjGEOM_LINE
         for a, b in zip(self.markers[:-1], self.markers[1:], strict=True):
             if scn.ngeom >= scn.maxgeom:

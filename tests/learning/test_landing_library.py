@@ -265,14 +265,18 @@ def test_cli_builds_a_library_that_eval_runs(tmp_path):
 def _without_far_entries(lib: MotionLibrary, max_tilt_deg: float, probe_every: int = 1) -> MotionLibrary:
     """``lib`` without the entries tilted beyond ``max_tilt_deg`` (those `--add` puts there), every ``probe_every``-th
     probe kept (fewer probes: fewer rollouts for `--add`)."""
-    shelves = []
-    for s in lib.shelves:
-        keep = np.flatnonzero(np.degrees(np.arccos(np.clip(s.up[:, 2], -1, 1))) <= max_tilt_deg + 0.5)
-        cols = np.stack([2 * keep, 2 * keep + 1], axis=1).ravel()
-        rows = np.arange(0, len(s.probe_up), probe_every)
-        shelves.append(Shelf(s.height_m, s.up[keep], s.x[keep], s.landed[keep], s.probe_up[rows],
-                             s.lands[np.ix_(rows, cols)], None if s.drops is None else [s.drops[i] for i in keep]))
+    shelves = [_shelf_with(s, np.flatnonzero(np.degrees(np.arccos(np.clip(s.up[:, 2], -1, 1))) <= max_tilt_deg + 0.5),
+                           np.arange(0, len(s.probe_up), probe_every), sigma_deg=None) for s in lib.shelves]
     return MotionLibrary(shelves, lib.radius_deg, lib.sigma_deg, meta={"made_by": "test"})
+
+
+def _shelf_with(s: Shelf, rows, probes=None, *, sigma_deg: float | None) -> Shelf:
+    """Shelf ``s`` with only its entries ``rows`` (and probes ``probes``; default all), their verdicts kept."""
+    rows = np.asarray(rows)
+    probes = np.arange(len(s.probe_up)) if probes is None else np.asarray(probes)
+    cols = np.stack([2 * rows, 2 * rows + 1], axis=1).ravel()
+    return Shelf(s.height_m, s.up[rows], s.x[rows], s.landed[rows], s.probe_up[probes], s.lands[np.ix_(probes, cols)],
+                 None if s.drops is None else [s.drops[i] for i in rows], sigma_deg)
 
 
 def test_add_puts_a_hard_drop_motion_on_its_shelf_and_the_library_then_lands_that_drop(tmp_path):
@@ -563,11 +567,7 @@ def test_on_a_paw_of_the_design_study_the_shipped_library_reaches_its_share_of_t
 
 def _with_entries(lib: MotionLibrary, height_m: float, rows) -> MotionLibrary:
     """``lib`` with only the entries ``rows`` on its ``height_m`` shelf (their probe verdicts kept), in that order."""
-    rows = np.asarray(rows)
-    cols = np.stack([2 * rows, 2 * rows + 1], axis=1).ravel()
-    shelves = [s if s.height_m != height_m else
-               Shelf(s.height_m, s.up[rows], s.x[rows], s.landed[rows], s.probe_up, s.lands[:, cols],
-                     None if s.drops is None else [s.drops[i] for i in rows], s.sigma_deg) for s in lib.shelves]
+    shelves = [s if s.height_m != height_m else _shelf_with(s, rows, sigma_deg=s.sigma_deg) for s in lib.shelves]
     return MotionLibrary(shelves, lib.radius_deg, lib.sigma_deg, meta=dict(lib.meta))
 
 
