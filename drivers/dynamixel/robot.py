@@ -51,6 +51,7 @@ after the host's last packet.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -82,6 +83,7 @@ TICK_ITEMS = (_TORQUE_ENABLE, _HW_ERROR, _BUS_WATCHDOG, *range(STATE_BLOCK[0], S
 _TICK_DTYPE = np.dtype([("torque", "u1"), ("hw", "u1"), ("watchdog", "u1"), ("current", "<i2"),
                         ("velocity", "<i4"), ("position", "<i4")])
 BUS_WATCHDOG_S = 0.1  # the deadman: servos stop this long after the host's last packet
+CHECK_RETRIES = 2  # extra tries of the one-off reads that check the servos (connecting, torque read-back)
 SETUP_RETRIES = 4  # extra tries of a read every servo must answer (arming): one-off, so a noisy bus gets more
 WATCHDOG_TRIPPED = 0xFF  # Bus Watchdog reads -1 once tripped
 BUS_WATCHDOG_ENV = "FELIS_BUS_WATCHDOG_MS"
@@ -213,7 +215,7 @@ class DynamixelRobot(RobotBase):
         missing, wrong = [], []
         for k, j in enumerate(self.spec.joints):
             try:
-                f = bus.ping(j.servo_id, retries=2)
+                f = bus.ping(j.servo_id, retries=CHECK_RETRIES)
             except (NoReplyError, CorruptReplyError):
                 if k == 0:
                     self._not_a_bus()
@@ -226,7 +228,7 @@ class DynamixelRobot(RobotBase):
                             f"{bus.port_name}: {', '.join(missing)}; check power and cabling, or `felis scan`")
         if wrong:
             raise DescriptionError(self.spec.source, "servo", "; ".join(wrong))
-        modes = bus.sync_read(self.ids, _OPERATING_MODE, 1, fast=False, retries=2)
+        modes = bus.sync_read(self.ids, _OPERATING_MODE, 1, fast=False, retries=CHECK_RETRIES)
         wrong_mode = [f"{j.name} (ID {j.servo_id}) is in mode {modes.data[j.servo_id][0]}, the description says "
                       f"{j.operating_mode}" for j in self.spec.joints
                       if modes.data[j.servo_id] is not None and modes.data[j.servo_id][0] != j.operating_mode]
@@ -236,7 +238,7 @@ class DynamixelRobot(RobotBase):
         self._write_controller()
         self._p_sent = self._p_described
         if self.calibration.homing is not None:
-            res = bus.sync_read(self.ids, _HOMING_OFFSET, 4, fast=False, retries=2)
+            res = bus.sync_read(self.ids, _HOMING_OFFSET, 4, fast=False, retries=CHECK_RETRIES)
             held = {i: int.from_bytes(b, "little", signed=True) for i, b in res.data.items() if b is not None}
             differ = [f"{j.name} (ID {j.servo_id}) holds {held[j.servo_id]}, the file {int(h)}"
                       for j, h in zip(self.spec.joints, self.calibration.homing, strict=True)
@@ -246,7 +248,7 @@ class DynamixelRobot(RobotBase):
                                        "see `felis calibration diff` and resolve with `felis calibration apply`")
         self._clear_watchdog(warn=True)
         self._install_map()
-        for i, secs, fix in bus.check_return_delay(self.ids):
+        for i, secs, fix in bus.check_return_delay(self.ids, CHECK_RETRIES):
             self.warnings.append(f"servo {i}: Return Delay Time {secs * 1e6:.0f} µs slows every read; fix: {fix}")
         lat = bus.latency_warning()
         if lat:
@@ -257,8 +259,11 @@ class DynamixelRobot(RobotBase):
         self._read_block(require_all=True)
 
     def _write_controller(self) -> None:
-        """The description's controller gains (and Goal Current in mode 5) into each servo's RAM, read back."""
+        """The description's controller gains (and Goal Current in mode 5) into each servo's RAM, read back. Its
+        reads get `CHECK_RETRIES`, as the connection's pings and sync reads, not the bus's one: a loaded host (the
+        virtual bus's emulator descheduled) can miss a reply twice while connecting."""
         bus = self.bus
+        read = functools.partial(bus.read, raw=True, retries=CHECK_RETRIES)
         for j in self.spec.joints:
             table = control_table(j.servo)
             values = dict(zip(_GAIN_ITEMS, (*j.pid, *j.feedforward), strict=True))
@@ -266,12 +271,12 @@ class DynamixelRobot(RobotBase):
             if j.operating_mode == 5 and "goal_current" in table.items:
                 item = table.item("goal_current")
                 amps = j.goal_current
-                limit = int(bus.read(j.servo_id, "current_limit", raw=True))  # the servo's own (EEPROM) cap
+                limit = int(read(j.servo_id, "current_limit"))  # the servo's own (EEPROM) cap
                 want["goal_current"] = min(limit, round(amps / item.scale)) if amps is not None else limit
             for name, raw in want.items():
-                if bus.read(j.servo_id, name, raw=True) != raw:
+                if read(j.servo_id, name) != raw:
                     bus.write(j.servo_id, name, raw, raw=True)
-                    back = bus.read(j.servo_id, name, raw=True)
+                    back = read(j.servo_id, name)
                     if back != raw:
                         raise CommError(f"{j.name} (ID {j.servo_id}): {name} reads {back} after writing {raw}")
 
@@ -374,7 +379,7 @@ class DynamixelRobot(RobotBase):
     def _torque_enable(self) -> dict[int, int | None]:
         """Torque Enable of every servo, by sync read; a servo whose reply was lost or corrupt is asked
         again on its own (up to 3 times); None where no valid reply came."""
-        res = self.bus.sync_read(self.ids, _TORQUE_ENABLE, 1, fast=False, retries=2)
+        res = self.bus.sync_read(self.ids, _TORQUE_ENABLE, 1, fast=False, retries=CHECK_RETRIES)
         out = {i: (None if res.data[i] is None else res.data[i][0]) for i in self.ids}
         for i in [i for i, v in out.items() if v is None]:
             for _ in range(3):
@@ -391,7 +396,7 @@ class DynamixelRobot(RobotBase):
     # ------------------------------------------------------------------ fail-safe set-up
     def _clear_watchdog(self, warn: bool) -> None:
         """Bus Watchdog to 0 on every servo; a tripped one (a run that was killed) is a warning."""
-        res = self.bus.sync_read(self.ids, _BUS_WATCHDOG, 1, fast=False, retries=2)
+        res = self.bus.sync_read(self.ids, _BUS_WATCHDOG, 1, fast=False, retries=CHECK_RETRIES)
         tripped = [f"{j.name} (ID {j.servo_id})" for j in self.spec.joints
                    if res.data[j.servo_id] is not None and res.data[j.servo_id][0] == WATCHDOG_TRIPPED]
         set_ = [i for i in self.ids if res.data[i] is not None and res.data[i][0]]
@@ -419,11 +424,11 @@ class DynamixelRobot(RobotBase):
             self._indirect = {}  # mixed layouts: one sync read cannot cover them
             return
         addr = starts.pop()
-        res = self.bus.sync_read(self.ids, addr, len(want), fast=False, retries=2)
+        res = self.bus.sync_read(self.ids, addr, len(want), fast=False, retries=CHECK_RETRIES)
         todo = [i for i in self.ids if res.data[i] != want]
         if todo:
             self.bus.sync_write(addr, len(want), {i: want for i in todo})
-            res = self.bus.sync_read(self.ids, addr, len(want), fast=False, retries=2)
+            res = self.bus.sync_read(self.ids, addr, len(want), fast=False, retries=CHECK_RETRIES)
         self._mapped = np.array([res.data[i] == want for i in self.ids])
 
     @property
