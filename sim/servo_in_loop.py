@@ -23,7 +23,10 @@ sysid its trial gains) act on the simulated joint as on the real one, and until 
 runs the factory gains the servo boots with; the model carries the integral and feedforward actuators of every
 joint for that (``full_controller``). A joint given fitted ``servo_params`` keeps its fitted controller.
 Velocity mode (1) is emulated on a bare servo only: a simulated joint keeps its position controller.
-``servo_params`` and ``fixed_base`` pass through to the model
+▸ Lockstep (``lockstep=True``, in this process: the balance evaluation's
+``--lockstep``): no thread; the host's loop steps the simulation by each tick (`MujocoBackend.advance`, called by
+the `Lockstep` robot wrapper, whose states carry the simulated time), so a host slowed by a loaded machine costs no
+simulated time. ``servo_params`` and ``fixed_base`` pass through to the model
 (`felis.sim.robot.MujocoRobot`: per-joint servo parameters, the robot hung on a stand). Mounting, per joint::
 
     θ = direction·q / m_per_rad + zero + mount_offset          (JointSpec fields; offset default 0)
@@ -56,6 +59,7 @@ import sys
 import threading
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 
 import mujoco
 import numpy as np
@@ -78,7 +82,7 @@ def virtual_bus(spec_or_name: RobotSpec | str, *, baud: int = 1_000_000, sim: bo
                 faults=None, seed: int = 0, mount_offsets: Mapping[str, float] | None = None,
                 servo_params: Mapping[str, object] | None = None, fixed_base: bool = False,
                 imu_mount: Sequence[float] | None = None, imu_drift: Sequence[float] | None = None,
-                drop: Sequence[float] | None = None) -> VirtualBus:
+                drop: Sequence[float] | None = None, lockstep: bool = False) -> VirtualBus:
     """`VirtualBus.for_robot` (one servo per joint, set up as a calibrated robot's, in the description's operating
     mode), with ``sim=True`` backed by the MuJoCo model (and the cat's IMU on ``bus.imu_port`` when started).
 
@@ -89,12 +93,16 @@ def virtual_bus(spec_or_name: RobotSpec | str, *, baud: int = 1_000_000, sim: bo
     ``imu_mount`` (unit quaternion w, x, y, z: the sensor in the body frame) and ``imu_drift``
     (sensor-frame rad/s, 3-vector) simulate a mis-mounted, drifting IMU (module doc; needs sim=True
     and a robot with an IMU). ``drop`` (height m, roll°, pitch°, yaw°) holds the robot in the air,
-    turned, until torque first comes on (module doc; needs sim=True and the floating base).
+    turned, until torque first comes on (module doc; needs sim=True and the floating base). ``lockstep``: the
+    simulation does not follow the wall clock but steps as the host's loop ticks (`Lockstep`, module doc; sim=True,
+    in this process).
     """
     spec = spec_or_name if isinstance(spec_or_name, RobotSpec) else load_spec(spec_or_name)
     if (servo_params or fixed_base) and not sim:
         raise ParameterError("servo parameters and a fixed base apply to the simulation: they need sim=True "
                              "(--sim)")
+    if lockstep and not sim:
+        raise ParameterError("lockstep steps the simulation with the host's loop: it needs sim=True (--sim)")
     drop = check_drop(drop, sim=sim, fixed_base=fixed_base)
     if drop is not None:
         check_floating_base(spec)
@@ -106,7 +114,7 @@ def virtual_bus(spec_or_name: RobotSpec | str, *, baud: int = 1_000_000, sim: bo
         mount = check_imu_mount(imu_mount, imu_drift)
 
     def backend(bus: VirtualBus) -> MujocoBackend:
-        return MujocoBackend(bus, servo_params=servo_params, fixed_base=fixed_base, drop=drop)
+        return MujocoBackend(bus, servo_params=servo_params, fixed_base=fixed_base, drop=drop, lockstep=lockstep)
 
     bus = VirtualBus.for_robot(spec, baud=baud, wire_time=wire_time, faults=faults, seed=seed,
                                mount_offsets=mount_offsets, backend=backend if sim else None, imu_mount=mount)
@@ -157,8 +165,10 @@ class MujocoBackend:
     MAX_STEPS = 20
 
     def __init__(self, bus: VirtualBus, *, servo_params: Mapping[str, object] | None = None,
-                 fixed_base: bool = False, drop: Sequence[float] | None = None):
+                 fixed_base: bool = False, drop: Sequence[float] | None = None, lockstep: bool = False):
         spec = bus.spec
+        self.lockstep = lockstep
+        self.sim_t = 0.0  # simulated time since the release (s)
         servos: list[VirtualServo] = bus.servos
         self.bus, self.spec, self.servos = bus, spec, servos
         self._fitted = dict(servo_params or {})
@@ -193,7 +203,22 @@ class MujocoBackend:
         self._thread = threading.Thread(target=self._run_guarded, name="virtual-bus sim", daemon=True)
 
     def start(self) -> None:
-        self._thread.start()
+        if not self.lockstep:  # lockstep: the host's ticks step the simulation (`advance`)
+            self._thread.start()
+
+    def advance(self, dt: float) -> float:
+        """Lockstep (``lockstep=True``): step the simulation by ``dt`` (whole model timesteps, at least one) now,
+        in the caller's thread, and publish it; no time passes while the robot is still held (torque never on).
+        The simulated time since the release."""
+        if not self.lockstep:
+            raise RuntimeError("advance steps a lockstep bus; this one follows the wall clock")
+        with self.bus.lock:
+            if self._held and any(s.torque_enabled for s in self.servos):
+                self._held = False
+            held = self._held
+        if not held:
+            self._step(max(1, round(dt / self.dt)))
+        return self.sim_t
 
     def stop(self) -> None:
         """Stop the thread, close the model (idempotent; also when never started)."""
@@ -276,7 +301,7 @@ class MujocoBackend:
             print(f"virtual bus: simulation stopped: {type(e).__name__}: {e}", file=sys.stderr)
 
     def _run(self) -> None:
-        dt, lock, robot = self.dt, self.bus.lock, self.robot
+        dt, lock = self.dt, self.bus.lock
         # The operator holds the robot in its start pose until torque first comes on: physics waits, so
         # a run through the bus starts from the same state as the same run on MuJoCo directly.
         while not self._stop.is_set():
@@ -286,9 +311,8 @@ class MujocoBackend:
                     break
             self._stop.wait(dt)
         t0 = time.perf_counter()
-        sim_t = 0.0
         while not self._stop.is_set():
-            behind = time.perf_counter() - t0 - sim_t
+            behind = time.perf_counter() - t0 - self.sim_t
             if behind < dt:
                 self._stop.wait(dt - behind)
                 continue
@@ -297,17 +321,46 @@ class MujocoBackend:
                 self.bus.stats.sim_lag_s += (n - self.MAX_STEPS) * dt
                 t0 += (n - self.MAX_STEPS) * dt
                 n = self.MAX_STEPS
-            with lock:
-                self.bus.housekeeping()
-                self._sync_command()
-            robot.advance(n * dt)
-            sim_t += n * dt
-            state = robot.read()
-            with lock:
-                self._publish(state)
-            observer = self.observer
-            if observer is not None:  # e.g. the live view of `felis virtual-bus --sim --live`: this thread only
-                observer(state)
+            self._step(n)
+
+    def _step(self, n: int) -> None:
+        """``n`` model timesteps: the servos' clocks and memory in, physics, the new state out (the bus lock is held
+        around the memory, not the physics: the server answers meanwhile)."""
+        with self.bus.lock:
+            self.bus.housekeeping()
+            self._sync_command()
+        self.robot.advance(n * self.dt)
+        self.sim_t += n * self.dt
+        state = self.robot.read()
+        with self.bus.lock:
+            self._publish(state)
+        observer = self.observer
+        if observer is not None:  # e.g. the live view of `felis virtual-bus --sim --live`: the stepping thread only
+            observer(state)
+
+
+class Lockstep:
+    """A host robot on a lockstep bus (``virtual_bus(..., lockstep=True)``): its ``advance`` steps the bus's
+    simulation by the loop's tick (`MujocoBackend.advance`) and its states carry the simulated time since the
+    release, so the loop's clock is the simulation's. The host still runs the whole hardware path on the wall
+    clock (`felis.loop.run_loop` paces it), but a host slowed by a loaded machine costs no simulated time: what is
+    measured (a monitor's warning ahead of a fall) is the controller's, not the machine's. Everything else is the
+    robot's (``robot``, e.g. `felis.drivers.dynamixel.DynamixelRobot`)."""
+
+    def __init__(self, robot, backend: MujocoBackend):
+        if not backend.lockstep:
+            raise ParameterError("Lockstep needs a lockstep bus: virtual_bus(..., sim=True, lockstep=True)")
+        self._robot, self._backend = robot, backend
+
+    def __getattr__(self, name: str):
+        return getattr(self._robot, name)
+
+    def read(self):
+        return replace(self._robot.read(), t=self._backend.sim_t)
+
+    def advance(self, dt: float) -> None:
+        self._robot.advance(dt)
+        self._backend.advance(dt)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,8 @@ the strategy selector (seed 004) under simulated pushes.
 once per episode and prints recall, false-alarm rate, median lead time and fall rate, with one entry per
 push; ``--reaction none|fixed:NAME|selector`` chooses what the cat does when the monitor warns.
 ``--backend dxl --port virtual`` runs each push through the whole hardware path (virtual Dynamixel bus
-backed by MuJoCo, wall clock). With one push, ``--live [HOST:]PORT`` serves it to Foxglove while it runs, with the
+backed by MuJoCo, wall clock; with ``--lockstep`` the simulation steps with the host's ticks, so a loaded machine
+costs no simulated time). With one push, ``--live [HOST:]PORT`` serves it to Foxglove while it runs, with the
 monitor's ``/balance`` channel (`felis.cli.live`). ``felis train balance`` makes the demonstrations (every push
 that calls for a reaction, tried with every strategy), fits the denoised kNN selector and an SVM beside it, and
 writes the selector (.npz), its demonstrations and a results JSON (`felis.learning.balance.train`).
@@ -38,6 +39,9 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--backend", choices=["sim", "dxl"], default="sim",
                    help="sim: MuJoCo directly (default); dxl: through the virtual Dynamixel bus (needs --port virtual)")
     e.add_argument("--port", help="dxl: 'virtual' (the pushes act on the bus's simulated cat)")
+    e.add_argument("--lockstep", action="store_true",
+                   help="dxl: the simulated cat steps with the host loop's ticks instead of the wall clock (the "
+                   "loop's clock is the simulation's; a slow host costs no simulated time)")
     e.add_argument("--workers", type=int, help="processes for the sim backend (default: every core)")
     e.add_argument("--out", type=Path, metavar="FILE.json", help="also write the JSON result to this file")
     e.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -90,6 +94,9 @@ def cmd_eval_balance(args) -> int:
     if args.backend == "dxl" and not ports.is_virtual(args.port):
         raise ParameterError("eval balance --backend dxl needs --port virtual: the pushes and the ground truth "
                              "act on the virtual bus's simulated cat")
+    if args.lockstep and (args.backend != "dxl" or args.live is not None):
+        raise ParameterError("--lockstep steps the virtual bus's simulation with the host: it needs --backend dxl "
+                             "--port virtual, without --live")
     if check_one(args, len(pushes), "pushes"):
         outcomes = [live_push(args.live, pushes[0], reaction, args.selector, args.backend)]
     elif args.backend == "dxl":
@@ -99,11 +106,12 @@ def cmd_eval_balance(args) -> int:
             from felis.learning.balance.selector import load_selector
 
             react = load_selector(args.selector, feature_names=FEATURES)
-        bar, step = output.progress(len(pushes), "pushes (virtual bus, wall clock)", quiet)
+        clock = "lockstep" if args.lockstep else "wall clock"
+        bar, step = output.progress(len(pushes), f"pushes (virtual bus, {clock})", quiet)
         with bar:
             outcomes = []
             for p in pushes:
-                o = run_push_virtual(p, react)
+                o = run_push_virtual(p, react, lockstep=args.lockstep)
                 o.reaction = reaction
                 outcomes.append(o)
                 step(1)
@@ -112,7 +120,7 @@ def cmd_eval_balance(args) -> int:
         with bar:
             outcomes = run_pushes(pushes, reaction, selector=None if args.selector is None else str(args.selector),
                                   workers=args.workers, progress=step)
-    res = {**summarise(outcomes), "reaction": args.reaction, "backend": args.backend,
+    res = {**summarise(outcomes), "reaction": args.reaction, "backend": args.backend, "lockstep": args.lockstep,
            "pushes_source": args.pushes, "seed": args.seed, "pushes": [o.as_dict() for o in outcomes]}
     res = {k: res[k] for k in ("recall", "false_alarm_rate", "median_lead_s", "fall_rate", *res)}  # headline first
     return output.emit(args, res, _print_summary)

@@ -83,9 +83,11 @@ def open_virtual_bus(stack: contextlib.ExitStack, robot: str | RobotSpec = "cat"
     IMU on ``imu_port``). ``process=True`` serves the bus from a child process (`felis.drivers.virtual.spawn`):
     client and bus then do not share a GIL, as with real servos; ``robot`` must then be a name or a file, and
     ``faults`` spec text. ``options`` go to the builder: ``mount_offsets`` (joint → rad, in this process), and
-    with ``sim``: ``servo_params`` (a `felis sysid` file), ``fixed_base``, ``imu_mount``, ``imu_drift``, ``drop``.
+    with ``sim``: ``servo_params`` (a `felis sysid` file), ``fixed_base``, ``imu_mount``, ``imu_drift``, ``drop``,
+    and in this process ``lockstep`` (the simulation steps with the host's ticks: wrap the robot in
+    `felis.sim.servo_in_loop.Lockstep`).
     """
-    known = set(SIM_OPTIONS) | (set() if process else {"mount_offsets"})
+    known = set(SIM_OPTIONS) | (set() if process else {"mount_offsets", "lockstep"})
     unknown = sorted(options.keys() - known)
     if unknown:
         raise ParameterError(f"virtual_bus{'(process=True)' if process else ''} does not take {', '.join(unknown)}; "
@@ -104,7 +106,7 @@ def open_virtual_bus(stack: contextlib.ExitStack, robot: str | RobotSpec = "cat"
                                           seed=seed, **options))
         return VirtualPort(child.port, spec, baud, imu_port=child.imu_port, process=child)
     spec = _spec(robot)
-    if sim or options.keys() & set(SIM_OPTIONS):
+    if sim or options.keys() & {*SIM_OPTIONS, "lockstep"}:
         from felis.sim.servo_file import load_servo_params  # late: MuJoCo
         from felis.sim.servo_in_loop import virtual_bus
 

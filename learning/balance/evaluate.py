@@ -154,21 +154,24 @@ def _skills(log, controller) -> list:
 
 
 def run_push_virtual(p: Push, reaction: str | Callable = "none", *, rate_hz: float = 50.0,
-                     monitor: dict | None = None, trace: bool = False, log=None) -> PushOutcome:
+                     monitor: dict | None = None, trace: bool = False, log=None, lockstep: bool = False) -> PushOutcome:
     """One push through the whole hardware path: `DynamixelRobot` → dynamixel-sdk → pseudo-terminal →
     virtual servos backed by MuJoCo, the IMU through its UART-RVC emulator, on the wall clock. The
     monitor has no simulator truth here: it estimates the CoM from the servos' angles and the IMU
     (`felis.bodymodel`), as on the real cat. The push and the fall detector act on the bus's model. ``log``: a
-    `felis.logs.runlog.RunLog` of the run (its scene from the body model: `felis.sim.scene.hardware_view`)."""
+    `felis.logs.runlog.RunLog` of the run (its scene from the body model: `felis.sim.scene.hardware_view`).
+    ``lockstep``: the bus's simulation steps with the loop's ticks and the loop's clock is the simulation's
+    (`felis.sim.servo_in_loop.Lockstep`): the times measured do not depend on how loaded the machine is."""
     from felis.drivers.dynamixel.robot import DynamixelRobot
     from felis.sim.bodymodel import load_body_model
-    from felis.sim.servo_in_loop import virtual_bus
+    from felis.sim.servo_in_loop import Lockstep, virtual_bus
 
     spec = load_spec("cat")
     body = load_body_model(spec)
-    with virtual_bus(spec, sim=True) as bus:
+    with virtual_bus(spec, sim=True, lockstep=lockstep) as bus:
         test = ThreadedPushTest(bus.backend.robot, p, tuple(spec.sensors.contacts))
-        with DynamixelRobot(spec, bus.port, imu_port=bus.imu_port) as robot:
+        with DynamixelRobot(spec, bus.port, imu_port=bus.imu_port) as hw:
+            robot = Lockstep(hw, bus.backend) if lockstep else hw
             ctl = ReactiveController(_base(p.phase), BalanceMonitor(body, **(monitor or {})), reaction)
             tr = _Trace(ctl) if trace else None
             run_loop(robot, ctl, duration=p.t_s + FALL_WINDOW_S, rate_hz=rate_hz, clock="wall", log=log,

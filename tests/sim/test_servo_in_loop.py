@@ -77,3 +77,32 @@ def test_gains_written_on_the_bus_reach_the_simulated_joint(virtual_bus, dxl_rob
     print(f"\njoint2 under gravity: {sag / RAD_PER_TICK:.1f} ticks from its goal without I, "
           f"{held / RAD_PER_TICK:.1f} with")
     assert sag > 3 * RAD_PER_TICK and held < sag / 3
+
+
+def test_a_lockstep_bus_steps_with_the_loop_and_its_clock_is_the_simulations(virtual_bus, dxl_robot, run):
+    """``lockstep=True``: no thread steps the bus's simulation; the `Lockstep` robot's ``advance`` does, one tick at a
+    time, and its states carry the simulated time. Nothing moves while the host waits, and nothing before torque
+    first comes on (the operator still holds the robot)."""
+    import time
+
+    from felis.errors import ParameterError
+    from felis.sim.servo_in_loop import Lockstep
+
+    vb = virtual_bus("arm", sim=True, lockstep=True)
+    hw = dxl_robot(vb)
+    backend = vb.bus.backend
+    robot = Lockstep(hw, backend)
+    robot.advance(0.02)
+    assert backend.sim_t == 0.0 and robot.read().t == 0.0  # held: no time passes
+    q0 = backend.robot.read().q.copy()
+    rep = run(robot, PoseController("sit", duration=0.5), 0.5, rate=RATE, log=False).report
+    assert rep.ok and rep.ticks == 25 and rep.final_state.t == pytest.approx(24 / RATE, abs=1e-9)
+    assert backend.sim_t == pytest.approx(25 / RATE, abs=1e-9)  # whole ticks, whatever the host's lag
+    q = backend.robot.read().q.copy()
+    assert np.abs(q - q0).max() > 0.05  # it moved toward sit
+    time.sleep(0.2)  # the wall clock moves; the simulation does not
+    assert np.array_equal(backend.robot.read().q, q) and backend.sim_t == pytest.approx(25 / RATE, abs=1e-9)
+    with pytest.raises(ParameterError, match="lockstep bus"):
+        Lockstep(hw, virtual_bus("arm", sim=True).bus.backend)
+    with pytest.raises(ParameterError, match="needs sim=True"):
+        virtual_bus("arm", lockstep=True)
