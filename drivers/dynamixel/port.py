@@ -42,6 +42,7 @@ from typing import Self
 import dynamixel_sdk as sdk
 import serial
 
+from felis.drivers.dynamixel.protocol import STATUS, PacketReader
 from felis.drivers.imu.frames import looks_like_rvc
 from felis.errors import CommError, ParameterError, PortError
 
@@ -320,6 +321,13 @@ class BusPort:
         data = self.listen(seconds)
         if len(data) < 8:
             return
+        replies = [p for p in PacketReader().feed(data) if p.crc_ok and p.inst == STATUS]
+        if replies and sum(len(p.raw) for p in replies) == len(data):  # a bus after all: its answers came late
+            ids = ", ".join(str(i) for i in sorted({p.id for p in replies}))
+            raise CommError(f"{self.port_name}: {len(replies)} Dynamixel replies (ID {ids}) came after felis had "
+                            "given up on them: the servos answer, but slower than the reply timeout (a USB "
+                            "adapter's latency timer, a long Return Delay Time, or a host too loaded to read them "
+                            "in time)")
         what = "BNO08x UART-RVC IMU frames" if looks_like_rvc(data) else f"{len(data)} bytes that no one asked for"
         raise CommError(f"{self.port_name} sends data unprompted ({what}); a Dynamixel bus is silent until asked: "
                         "are --port and --imu-port swapped?")

@@ -221,6 +221,22 @@ def test_delay_past_the_timeout_is_a_timeout(cat_bus, bus):
     assert bus.ping(1).model == "XL330-M288-T"
 
 
+def test_replies_that_come_after_the_timeout_are_named_late_not_a_swapped_port(cat_bus, bus):
+    """When connecting's pings of the first servo all time out, the port is listened to for an IMU given as the bus.
+    A bus whose replies all come too late (a USB adapter's latency timer, a starved host; a loaded machine once
+    ran `felis eval balance --backend dxl --port virtual` into it) sends only Dynamixel status packets then: named
+    as late replies of those IDs, not as a port that talks unprompted."""
+    cat_bus.faults.delay_ms = 200.0  # past the reply timeout (~50 ms)
+    for i in (1, 2):
+        with pytest.raises(NoReplyError):
+            bus.ping(i, retries=0)
+    with pytest.raises(CommError) as e:
+        bus.check_quiet(0.5)
+    msg = str(e.value)
+    assert "2 Dynamixel replies (ID 1, 2) came after felis had given up on them" in msg, msg
+    assert "swapped" not in msg and "\n" not in msg
+
+
 # --------------------------------------------------------------------------------- DynamixelRobot
 # Wall-clock runs about another fault keep the Bus Watchdog armed at a time a loaded 2-core machine cannot
 # exceed by accident (the shipped 0.1 s deadman did trip first once on CI, in an IMU test).
