@@ -16,7 +16,7 @@ from pathlib import Path
 from felis.cli import output
 from felis.cli.args import check_checkpoints, has_checkpoints, live_option, restart_option
 from felis.errors import ParameterError
-from felis.learning.landing.designs import DESIGNS
+from felis.learning.landing.designs import DESIGNS, design_library
 
 DEFAULT_TRAIN_OUT = Path("runs/train-landing/landing.npz")
 DEFAULT_TRAIN_LIBRARY = Path("runs/train-landing/landing_library.json")
@@ -140,7 +140,8 @@ def register_eval(eval_sub) -> None:
                    "uniform over all rotations) or euler:N (roll, pitch and yaw each uniform over the circle)")
     e.add_argument("--policy", metavar="library|shipped|passive|stand|rules|optimum|FILE",
                    help="what the cat does while it falls and lands: library (the shipped motion library: the "
-                   "motion that lands most often near the attitude the IMU gives at release; the default), shipped "
+                   "motion that lands most often near the attitude the IMU gives at release; the default; on a "
+                   "--design with its own vote, that one: rubber-paw's, taken at 0.5 ms), shipped "
                    "(the evolved nets), passive (hold the pose at release), stand (go to the stand pose), rules (the "
                    "hand-written spine rule of the nearest training orientation), optimum (the best open-loop "
                    "whole-body motion CMA-ES finds for each drop; slow; with --warm-start, searched from the library's "
@@ -448,6 +449,8 @@ def cmd_eval_landing(args) -> int:
 
     drops = drops_from(args.drops, args.seed, args.height)
     args.policy = args.policy or default_policy()
+    if args.policy == "library" and design_library(args.design) is not None:
+        args.policy = str(design_library(args.design))  # that cat's own vote of the library's motions
     if args.design != "cat" and args.live is not None:
         raise ParameterError("--live runs the described cat; --design is for batched evaluations")
     if args.timestep is not None:

@@ -17,7 +17,9 @@ A `Design` changes the described cat (`felis/robots/cat.toml`, `sim/models/cat.x
 
 Masses stay the model's: an XC330 is 5 g heavier than an XL330 (23 g against 18 g), 1 % of the cat per
 servo, which the study ignores. `DESIGNS` holds the study's designs, `design_sim` builds the batch simulation
-of one (`felis.learning.landing.evaluate.BatchLandingSim`), and `joint_speeds` gives the per-joint speed the
+of one (`felis.learning.landing.evaluate.BatchLandingSim`), `design_library` the motion library that
+``--policy library`` runs on it (the ``rubber-paw`` cat's: the shipped motions voted on it at 0.5 ms), and
+`joint_speeds` gives the per-joint speed the
 optimum's motions run at (`felis.learning.landing.optimum.motion_table`).
 """
 
@@ -45,6 +47,7 @@ class Design:
     servos: dict[str, str] = field(default_factory=dict)  # group → servo model
     volts: float | None = None  # supply voltage for every servo (None: each model's nominal)
     paw_tau_s: float | None = None  # the feet's contact time constant (None: the model's)
+    library: str | None = None  # its own motion library (a votes file in learning/weights/): --policy library on it
 
     def check(self, spec: RobotSpec) -> None:
         for group, model in self.servos.items():
@@ -81,7 +84,8 @@ DESIGNS: dict[str, Design] = {d.name: d for d in (
     Design("fast-limbs+strong-spine", "both of the above",
            servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T", "spine": "XC330-M181-T"}),
     Design("6V", "XL330-M288-T at its 6 V maximum (×1.2 speed and stall torque)", volts=6.0),
-    Design("rubber-paw", "moulded-rubber paws (Shore ≈ 50A), τ = 2 ms (k ≈ 61 kN/m)", paw_tau_s=0.002),
+    Design("rubber-paw", "moulded-rubber paws (Shore ≈ 50A), τ = 2 ms (k ≈ 61 kN/m)", paw_tau_s=0.002,
+           library="landing_library_rubber-paw.json"),
     Design("soft-rubber-paw", "soft rubber paws (Shore ≈ 30A), τ = 3 ms (k ≈ 27 kN/m)", paw_tau_s=0.003),
 )}
 
@@ -91,6 +95,15 @@ def get_design(name: str) -> Design:
         return DESIGNS[name]
     except KeyError:
         raise ParameterError(f"unknown design {name!r}; designs: {', '.join(DESIGNS)}") from None
+
+
+def design_library(name: str):
+    """The path of design ``name``'s own motion library (the shipped library's motions with their vote taken on
+    that cat: `bench/landing_revote.py`), or None: it runs the shipped library."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY
+
+    own = get_design(name).library
+    return None if own is None else DEFAULT_LIBRARY.parent / own
 
 
 def design_robot(design: Design, base: RobotSpec | None = None):

@@ -27,6 +27,13 @@ denser than the library's (``felis train landing-library --add-probes``) may vot
 "probes_added", "rebuilt", "joined", "rechecked", "extended",] "radius_deg", "sigma_deg", "shelves": [{"height_m",
 ["sigma_deg",] "entries": [{"up", "drop", "landed", "motion_x"}], "probes": [{"up", "lands"}]}]}``; ``lands`` lists
 candidate ids, 2·entry + (1 if mirrored). Made by ``felis train landing-library``.
+
+**Votes file** (the same format and version): the votes of another library file taken again on another cat or
+physics step (`bench/landing_revote.py`), which candidates land each probe there; its motions and probes are that
+library's. ``{"format", "version", "votes_of": {"file", "sha256"}, "revoted", "shelves": [{"height_m", "lands":
+[[ids], …]}]}``: ``file`` is the library's path relative to the votes file's folder, ``sha256`` its bytes' (a
+library rebuilt since is refused), one ``lands`` list per probe of the shelf of that height; a shelf it does not
+list keeps the library's vote. `load_library` reads either kind; `votes_dict` writes one.
 """
 
 from __future__ import annotations
@@ -245,7 +252,7 @@ def library_from_dict(doc) -> MotionLibrary:
         shelves.append(Shelf(float(h), U, X, landed, P, lands, drops if all(d is not None for d in drops) else None,
                              None if sig is None else float(sig)))
     meta = {k: doc[k] for k in ("made_by", "grid", "search", "added", "extended_by", "probes_added",
-                                     "rebuilt", "joined", "rechecked", "extended") if k in doc}
+                                     "rebuilt", "joined", "rechecked", "extended", "revoted") if k in doc}
     return MotionLibrary(shelves, float(rs[0]), float(rs[1]), meta)
 
 
@@ -320,14 +327,77 @@ def load_library(path: str | Path = DEFAULT_LIBRARY) -> MotionLibrary:
         return _copy(_LOADED[key])
     doc = read_json(path, "landing motion library", ParameterError, " (make one: felis train landing-library)")
     try:
-        lib = library_from_dict(doc)
+        lib = _with_votes(doc, path) if isinstance(doc, dict) and "votes_of" in doc else library_from_dict(doc)
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
-    if key is not None:
+    if key is not None and "votes_of" not in lib.meta:  # a votes file is checked against its library every time
         while len(_LOADED) >= _LOADED_KEEP:
             _LOADED.pop(next(iter(_LOADED)))
         _LOADED[key] = _copy(lib)
     return lib
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _with_votes(doc: dict, path: Path) -> MotionLibrary:
+    """The library a votes file (module doc) names, with its shelves' votes replaced; faults are one line."""
+    if doc.get("format") != FORMAT or doc.get("version") != VERSION:
+        raise ParameterError(f"not a landing votes file (format {FORMAT!r}, version {VERSION})")
+    of = doc["votes_of"]
+    if not isinstance(of, dict) or not isinstance(of.get("file"), str) or not isinstance(of.get("sha256"), str):
+        raise ParameterError("'votes_of' must hold the library's 'file' and its 'sha256'")
+    base = path.parent / of["file"]
+    if not base.is_file():
+        raise ParameterError(f"votes of {base}: no such library file")
+    if _sha256(base) != of["sha256"]:
+        raise ParameterError(f"votes of {base}, which has changed since (its sha256 differs): take the vote again "
+                             "(bench/landing_revote.py)")
+    lib = load_library(base)
+    if "votes_of" in lib.meta:
+        raise ParameterError(f"votes of {base}, itself a votes file: name the library")
+    shelves = doc.get("shelves")
+    if not isinstance(shelves, list) or not shelves:
+        raise ParameterError("'shelves' must be a non-empty list")
+    for k, s in enumerate(shelves):
+        h = s.get("height_m") if isinstance(s, dict) else None
+        shelf = next((x for x in lib.shelves if isinstance(h, int | float) and x.height_m == h), None)
+        if shelf is None:
+            raise ParameterError(f"shelf {k}: {base.name} has no shelf of height {h!r} m (it has "
+                                 f"{', '.join(f'{x:g}' for x in lib.heights)})")
+        lands, n_cand = s.get("lands"), 2 * len(shelf.up)
+        if not isinstance(lands, list) or len(lands) != len(shelf.probe_up):
+            raise ParameterError(f"shelf {k} ({h:g} m): 'lands' must be one list per probe "
+                                 f"({len(shelf.probe_up)})")
+        new = np.zeros_like(shelf.lands)
+        for p, ids in enumerate(lands):
+            if not isinstance(ids, list) or not all(type(c) is int and 0 <= c < n_cand for c in ids):
+                raise ParameterError(f"shelf {k} ({h:g} m), probe {p}: lands must be candidate ids 0…{n_cand - 1}")
+            new[p, ids] = True
+        shelf.lands = new
+    lib.meta = {**lib.meta, "votes_of": of, **({"revoted": doc["revoted"]} if "revoted" in doc else {})}
+    return lib
+
+
+def votes_dict(lib: MotionLibrary, base: str | Path, out: str | Path, heights, meta: dict | None = None) -> dict:
+    """A votes file (module doc) for ``out``: ``lib``'s votes on its shelves of ``heights`` over the library file
+    ``base`` (whose motions and probes ``lib`` must have)."""
+    import os
+
+    base, out = Path(base), Path(out)
+    ref = load_library(base)
+    shelves = []
+    for h in heights:
+        s, r = lib.shelf(h), ref.shelf(h)
+        if s.height_m != r.height_m or s.up.shape != r.up.shape or s.probe_up.shape != r.probe_up.shape:
+            raise ParameterError(f"the votes' {h:g} m shelf is not {base}'s")
+        shelves.append({"height_m": s.height_m, "lands": [[int(c) for c in np.flatnonzero(row)] for row in s.lands]})
+    return {"format": FORMAT, "version": VERSION, **(meta or {}),
+            "votes_of": {"file": os.path.relpath(base.resolve(), out.resolve().parent), "sha256": _sha256(base)},
+            "shelves": shelves}
 
 
 def _copy(lib: MotionLibrary) -> MotionLibrary:

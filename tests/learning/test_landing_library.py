@@ -19,6 +19,7 @@ from felis.learning.landing.library import (
     MotionLibrary,
     Shelf,
     drop_up,
+    is_library_file,
     library_from_dict,
     load_library,
     mirror_motion,
@@ -183,6 +184,55 @@ def test_bad_library_files_are_one_line_naming_the_file(tmp_path, edit, message)
     path.write_text("{")
     with pytest.raises(ParameterError, match="lib.json"):
         load_library(path)
+
+
+def _two_shelves() -> MotionLibrary:
+    return MotionLibrary([_shelf(), Shelf(3.0, *[getattr(_shelf(), k) for k in ("up", "x", "landed", "probe_up",
+                                                                                "lands")])], meta={"made_by": "t"})
+
+
+def test_a_votes_file_gives_its_library_other_votes_on_the_shelves_it_lists_and_keeps_the_rest(tmp_path):
+    """A votes file (`bench/landing_revote.py`'s output) names its library by path and SHA-256: loaded, it is that
+    library with the listed shelves' lands replaced; a votes file written elsewhere names it relative to itself."""
+    from felis.learning.landing.library import votes_dict
+
+    base = tmp_path / "lib.json"
+    base.write_text(json.dumps(_two_shelves().as_dict()))
+    voted = load_library(base)
+    voted.shelf(3.0).lands[:] = False
+    voted.shelf(3.0).lands[1, 3] = True  # the 14° entry's mirror image lands probe 1 there; nothing else
+    (tmp_path / "v").mkdir()
+    out = tmp_path / "v" / "votes.json"
+    out.write_text(json.dumps(votes_dict(voted, base, out, [3.0], {"revoted": {"3m": {"design": "d"}}})))
+    doc = json.loads(out.read_text())
+    assert doc["votes_of"]["file"] == "../lib.json" and [s["height_m"] for s in doc["shelves"]] == [3.0]
+    back = load_library(out)
+    assert np.array_equal(back.shelf(3.0).lands, voted.shelf(3.0).lands)
+    assert np.array_equal(back.shelf(1.0).lands, _shelf().lands)  # not listed: the library's own vote
+    assert back.shelf(3.0).choose(_unit(13.0))[1] == 3 and back.shelf(1.0).choose(_unit(13.0))[1] == 0
+    assert np.array_equal(back.shelf(3.0).x, _shelf().x) and back.meta["revoted"] == {"3m": {"design": "d"}}
+    assert is_library_file(out)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d, b: b.write_text(b.read_text() + " "), "has changed since"),
+    (lambda d, b: b.unlink(), "no such library file"),
+    (lambda d, b: d["votes_of"].pop("sha256"), "'votes_of' must hold the library's 'file' and its 'sha256'"),
+    (lambda d, b: d["shelves"][0].update(height_m=2.0), "shelf 0: lib.json has no shelf of height 2.0 m"),
+    (lambda d, b: d["shelves"][0]["lands"].pop(), "'lands' must be one list per probe \\(3\\)"),
+    (lambda d, b: d["shelves"][0]["lands"][2].append(4), "probe 2: lands must be candidate ids 0…3"),
+])
+def test_bad_votes_files_are_one_line_naming_the_file(tmp_path, edit, message):
+    from felis.learning.landing.library import votes_dict
+
+    base, out = tmp_path / "lib.json", tmp_path / "votes.json"
+    base.write_text(json.dumps(_two_shelves().as_dict()))
+    doc = votes_dict(load_library(base), base, out, [1.0])
+    edit(doc, base)
+    out.write_text(json.dumps(doc))
+    with pytest.raises(ParameterError, match=message) as e:
+        load_library(out)
+    assert str(out) in str(e.value) and "\n" not in str(e.value)
 
 
 def test_the_shipped_library_batched_equals_sequential():
@@ -506,6 +556,7 @@ def test_add_probes_refuses_a_height_without_a_shelf_and_bad_numbers_in_one_line
 
 
 WARM_1M, WARM_3M = 89, 94  # the warm-started optimum on random:100 seed 0 (docs/landing.md)
+RUBBER_1M = 89  # the rubber-paw cat's own vote from 1 m, seed 0, 0.5 ms (docs/landing.md)
 
 
 @pytest.mark.parametrize("height, want", [(1.0, (85, 78)), (3.0, (84, 71))])
@@ -541,7 +592,7 @@ def test_the_warm_optimum_shipped_is_a_ceiling_of_the_shipped_library(height, wa
 @pytest.mark.parametrize("design, height, step, want, share", [
     ("soft-rubber-paw", 1.0, None, 88, 94), ("soft-rubber-paw", 3.0, None, 96, 91), ("rubber-paw", 1.0, None, 90, 84),
     ("rubber-paw", 3.0, None, 97, 61), ("rubber-paw", 1.0, 0.5, 89, 93), ("rubber-paw", 3.0, 0.5, 98, 78),
-    ("rubber-paw", 3.0, 0.25, 96, 80)])
+    pytest.param("rubber-paw", 3.0, 0.25, 96, 80, marks=pytest.mark.slow)])  # 17 s; the own vote's test supersedes it
 def test_on_a_paw_of_the_design_study_the_shipped_library_reaches_its_share_of_that_cats_ceiling(design, height, step,
                                                                                                  want, share):
     """`learning/weights/landing_optimum_warm_<design>-<h>m[-<step>ms].json` (`felis eval landing --design <design>
@@ -563,6 +614,45 @@ def test_on_a_paw_of_the_design_study_the_shipped_library_reaches_its_share_of_t
                                        timestep=None if step is None else step / 1000.0)]
     assert all(o["landed"] for o, landed in zip(doc["drops"], lib, strict=True) if landed)
     assert round(100 * sum(lib) / want) == share
+
+
+@pytest.mark.parametrize("height, want, ceiling", [(1.0, RUBBER_1M, 89), (3.0, 92, 98)])
+def test_the_rubber_paw_cat_runs_its_own_vote_of_the_library_and_lands_90_percent_of_its_ceiling(height, want,
+                                                                                                 ceiling):
+    """`learning/weights/landing_library_rubber-paw.json`, what `felis eval landing --design rubber-paw` runs by
+    default: the shipped library's motions with their vote taken again on the rubber-paw cat at 0.5 ms over every
+    probe of both shelves (`bench/landing_revote.py --near-deg 0`; nothing chosen on the evaluated drops). On
+    `random:100` seed 0 at 0.5 ms it lands what the docs say, at least 90 % of that cat's ceiling there (the
+    issue's goal) and more than the shipped vote."""
+    from felis.learning.landing.designs import design_library
+    from felis.learning.landing.evaluate import run_drops
+
+    path = design_library("rubber-paw")
+    lib, base = load_library(path), load_library()
+    assert lib.meta["votes_of"]["file"] == DEFAULT_LIBRARY.name
+    assert all(v["near_deg"] == 0 and v["timestep_ms"] == 0.5 and v["design"] == "rubber-paw"
+               for v in lib.meta["revoted"].values()) and set(lib.meta["revoted"]) == {"1m", "3m"}
+    for a, b in zip(lib.shelves, base.shelves, strict=True):  # the same motions and probes; another vote
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.probe_up, b.probe_up) and a.sigma_deg == b.sigma_deg
+        assert not np.array_equal(a.lands, b.lands)
+    doc = json.loads((DEFAULT_LIBRARY.parent / f"landing_optimum_warm_rubber-paw-{height:g}m-0.5ms.json").read_text())
+    assert doc["landed"] == ceiling and doc["timestep_ms"] == 0.5
+    drops = random_drops(100, seed=0, heights=height)
+    got = sum(o.landed for o in run_drops(drops, str(path), design="rubber-paw", timestep=0.0005))
+    assert abs(got - want) <= 1, f"{height:g} m: {got} landed, the docs say {want}"
+    assert got >= 0.9 * ceiling
+
+
+def test_eval_landing_on_a_design_with_its_own_vote_runs_it_by_default(tmp_path, capsys):
+    from felis.cli.main import main
+    from felis.learning.landing.designs import design_library
+
+    drops = tmp_path / "d.json"
+    drops.write_text(json.dumps([{"roll_deg": 150.0, "pitch_deg": 10.0, "yaw_deg": 0.0, "height_m": 1.0}]))
+    for design, policy in (("rubber-paw", str(design_library("rubber-paw"))), ("cat", "library")):
+        assert main(["eval", "landing", "--drops", str(drops), "--design", design, "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["policy"] == policy
+    assert design_library("cat") is None
 
 
 def _with_entries(lib: MotionLibrary, height_m: float, rows) -> MotionLibrary:
