@@ -86,6 +86,7 @@ def test_the_band_ceiling_is_the_candidate_that_lands_the_most_heights_as_if_eac
         bench.band_ceiling(sim, drops, cands, [-1, 1])
 
 
+@pytest.mark.slow  # 14-21 s: the bench's figures, checked by `make test-slow`
 def test_band_reads_the_ceiling_over_the_heights_and_the_library_is_at_most_level_with_it():
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--band", "--height", "1",
                         "--drops", "3", "--mm", "1", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=300)
@@ -121,6 +122,7 @@ def test_from_3_m_landings_repeat_with_the_fall_of_one_physics_step_a_discretisa
     assert abs(row["period_mm"] - out["fall_per_step_mm"]) <= 1.0
 
 
+@pytest.mark.slow  # 14-21 s: the bench's figures, checked by `make test-slow`
 def test_a_level_drops_paw_penetration_depends_on_the_step_phase_at_the_model_step_not_at_a_quarter_of_it():
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "landing_height.py"), "--penetration", "--json"],
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
@@ -141,6 +143,7 @@ def test_a_level_drops_paw_penetration_depends_on_the_step_phase_at_the_model_st
     assert all(row["link_after_ms"] is None for rows in out["by_timestep_ms"].values() for row in rows)
 
 
+@pytest.mark.slow  # 14-21 s: the bench's figures, checked by `make test-slow`
 def test_from_3_m_the_described_cats_landings_go_as_the_physics_step_shrinks():
     # the library's choice and the ceiling's motions on seed 0's first 20 drops from 3 m, at the model's 1 ms step
     # and at 0.25 ms: at 1 ms the ceiling lands what its file says; at 0.25 ms both lose more than half of it
