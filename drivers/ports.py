@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from felis.drivers.dynamixel.bus import DynamixelBus
+from felis.drivers.dynamixel.port import MARGIN_MS_VIRTUAL
 from felis.drivers.dynamixel.trace import PacketTrace, TracedBus
 from felis.drivers.virtual import spawn
 from felis.errors import ParameterError
@@ -69,7 +70,8 @@ def open_ports(port: str | None, *, robot: str = "cat", baud: int = 1_000_000, i
     """Open the servo bus named ``port`` (a path, ``virtual``, or None for ``$FELIS_PORT``).
 
     ``virtual`` spawns a virtual bus for ``robot`` at ``baud``; ``sim``, ``servo_params``, ``fixed_base``
-    and ``drop`` go to `spawn` (its simulation). ``bus``: also open a `DynamixelBus` (with ``retries``)
+    and ``drop`` go to `spawn` (its simulation). ``bus``: also open a `DynamixelBus` (with ``retries``; on a
+    virtual bus 40 ms of reply slack, `MARGIN_MS_VIRTUAL`, unless ``$FELIS_TIMEOUT_MARGIN_MS`` says otherwise)
     and, with ``quiet_check``, listen 50 ms first and refuse a port that talks unprompted (the IMU's,
     given as the bus: `DynamixelBus.check_quiet`; the emergency stop skips it, it never waits before it
     sends). ``imu_port``: the IMU's serial device; without one, a virtual bus's simulated IMU. ``trace``: write
@@ -83,8 +85,11 @@ def open_ports(port: str | None, *, robot: str = "cat", baud: int = 1_000_000, i
                                               fixed_base=fixed_base, drop=drop))
             out.child, out.port, out.imu_port = child, child.port, imu_port or child.imu_port
         if bus:
-            out.bus = stack.enter_context(DynamixelBus(out.port, baud, retries=retries) if trace is None
-                                          else TracedBus(out.port, baud, retries=retries, trace=trace))
+            margin = (MARGIN_MS_VIRTUAL if out.virtual and not os.environ.get("FELIS_TIMEOUT_MARGIN_MS")
+                      else None)  # None: the port's own default, or the variable's
+            kw = dict(retries=retries, timeout_margin_ms=margin)
+            out.bus = stack.enter_context(DynamixelBus(out.port, baud, **kw) if trace is None
+                                          else TracedBus(out.port, baud, trace=trace, **kw))
             if quiet_check:
                 out.bus.check_quiet()
         yield out

@@ -201,6 +201,9 @@ def candidate_ports() -> list[str]:
 
 
 MARGIN_MS_PTY, MARGIN_MS_USB = 10.0, 4.0  # reply-timeout slack without $FELIS_TIMEOUT_MARGIN_MS
+# `--port virtual`: the emulated servos are a process on this host, answering when the scheduler runs them; a
+# loaded machine (an optimisation on every core) once ran a connect's pings past the pty's 10 ms
+MARGIN_MS_VIRTUAL = 40.0
 
 
 def env_margin_ms(environ=None) -> float:

@@ -119,7 +119,7 @@ def check_latency(sysfs: str = "/sys/bus/usb-serial/devices") -> list[Check]:
 
 def check_environment(environ=None) -> list[Check]:
     """One check per ``FELIS_*`` bus setting that is set (none: nothing to say)."""
-    from felis.drivers.dynamixel.port import MARGIN_MS_PTY, MARGIN_MS_USB, env_margin_ms
+    from felis.drivers.dynamixel.port import MARGIN_MS_PTY, MARGIN_MS_USB, MARGIN_MS_VIRTUAL, env_margin_ms
     from felis.drivers.dynamixel.robot import BUS_WATCHDOG_ENV, BUS_WATCHDOG_S, default_bus_watchdog_s
     from felis.errors import ParameterError
 
@@ -141,10 +141,11 @@ def check_environment(environ=None) -> list[Check]:
         except ParameterError as e:
             out.append(Check("FELIS_TIMEOUT_MARGIN_MS", FAIL, f"{e}: every bus refuses to open",
                              f"unset FELIS_TIMEOUT_MARGIN_MS ({MARGIN_MS_PTY:g} ms on a pty, {MARGIN_MS_USB:g} ms on a "
-                             "USB adapter), or give 0…1000"))
+                             f"USB adapter, {MARGIN_MS_VIRTUAL:g} ms on --port virtual), or give 0…1000"))
         else:
             out.append(Check("FELIS_TIMEOUT_MARGIN_MS", INFO, f"every reply timeout gets {ms:g} ms of slack "
-                             f"(default {MARGIN_MS_PTY:g} ms on a pty, {MARGIN_MS_USB:g} ms on a USB adapter)"))
+                             f"(default {MARGIN_MS_PTY:g} ms on a pty, {MARGIN_MS_USB:g} ms on a USB adapter, "
+                             f"{MARGIN_MS_VIRTUAL:g} ms on --port virtual)"))
     return out
 
 

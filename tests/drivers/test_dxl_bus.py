@@ -237,6 +237,24 @@ def test_replies_that_come_after_the_timeout_are_named_late_not_a_swapped_port(c
     assert "swapped" not in msg and "\n" not in msg
 
 
+@pytest.mark.parametrize("env", [None, "7"])
+def test_port_virtual_gives_its_bus_a_loaded_hosts_reply_slack(monkeypatch, env):
+    """`--port virtual`'s servos are a process on this host: its bus waits `MARGIN_MS_VIRTUAL` (40 ms) past each
+    reply's wire time, not a pty's 10 ms, unless ``$FELIS_TIMEOUT_MARGIN_MS`` says otherwise; the bus answers."""
+    from felis.drivers.dynamixel.port import MARGIN_MS_PTY, MARGIN_MS_VIRTUAL
+    from felis.drivers.ports import open_ports
+
+    if env is None:
+        monkeypatch.delenv("FELIS_TIMEOUT_MARGIN_MS", raising=False)
+    else:
+        monkeypatch.setenv("FELIS_TIMEOUT_MARGIN_MS", env)
+    with open_ports("virtual", robot="arm", baud=BAUD) as ports:
+        assert ports.virtual
+        want = MARGIN_MS_VIRTUAL if env is None else float(env)
+        assert ports.bus._margin_ms == want and MARGIN_MS_VIRTUAL > MARGIN_MS_PTY
+        assert ports.bus.ping(11) is not None
+
+
 # --------------------------------------------------------------------------------- DynamixelRobot
 # Wall-clock runs about another fault keep the Bus Watchdog armed at a time a loaded 2-core machine cannot
 # exceed by accident (the shipped 0.1 s deadman did trip first once on CI, in an IMU test).
