@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -13,6 +15,8 @@ def _bench(*argv: str) -> subprocess.CompletedProcess:
                           text=True, cwd=ROOT, timeout=200)
 
 
+# slow (12 s): bench/landing_latency.py's figures
+@pytest.mark.slow
 def test_late_starts_land_no_more_than_on_time_and_on_time_is_felis_eval(tmp_path):
     """The demo's hard drop lands at every delay up to 4 ticks (what `felis.cli.demo.HARD_DROP` was chosen for);
     the earlier (141, 8) lands on time and 2 ticks late, not 4 (docs/landing.md); on time, the count is `felis eval

@@ -16,8 +16,10 @@ def bench():
 
 # The paper's spine samples (the bench's default) and the 24 whole-body ones run in `make test-slow`: the study's
 # code is the same for every sample set but the choice of the 7, and the training tests load the spine samples.
+# The library's samples too (26 s): the default suite keeps the shipped study's figures (below).
 @pytest.mark.parametrize("samples", [pytest.param("spine", marks=pytest.mark.slow),
-                                     pytest.param("wholebody", marks=pytest.mark.slow), "library"])
+                                     pytest.param("wholebody", marks=pytest.mark.slow),
+                                     pytest.param("library", marks=pytest.mark.slow)])
 def test_tiny_study_has_every_experiment_and_baseline(bench, tmp_path, samples):
     res = bench.study([5], TINY, workers=1, tmp=tmp_path, samples_file=bench.SAMPLES[samples])
     row = res["seeds"]["5"]

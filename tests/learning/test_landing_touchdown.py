@@ -110,6 +110,8 @@ def test_a_height_patch_scores_the_worst_of_three_heights():
         assert got[i][0] == min(s for s, _ in each[3 * i:3 * i + 3])
 
 
+# slow (12 s): the search's --patch option through a long run; its inside is tested above by default
+@pytest.mark.slow
 def test_patch_through_the_long_run_and_the_cli(tmp_path):
     """`optimise_all(patch_deg=)` equals `optimise` (chunked, checkpointed: the header records the patch); the
     commands refuse a negative patch in one line."""

@@ -45,6 +45,8 @@ def test_make_and_load_wholebody_samples(tmp_path):
     assert doc["kind"] == "whole-body" and "make_wholebody_samples" in doc["command"]
 
 
+# slow (16 s): the §6.6 study's samples taken from the library (a bench's input)
+@pytest.mark.slow
 def test_library_samples_are_landing_motions_nearest_the_papers_orientations_in_order(tmp_path):
     """`make_library_samples` on the shipped library: 7 samples in the paper's order, each a motion that lands
     its own start, each the nearest such start to its orientation by up-axis among those not taken before it; the
