@@ -46,6 +46,7 @@ import time
 from dataclasses import dataclass
 
 import mujoco
+import mujoco.rollout
 import numpy as np
 
 from felis.learning.common.evaluator import _chunk, make_evaluator
@@ -247,10 +248,12 @@ def batched_speed(task: lk.Task, jobs: list[tuple], repeats: int) -> dict:
     start, _ = batch.initial(drops)
     out_state = np.empty((B, T * P, batch.nstate))
     out_sens = np.empty((B, T * P, batch.model.nsensordata))
+    pool = mujoco.rollout.Rollout(nthread=batch.nthread)  # the anchor's threads: as many as the batch's
+    datas = [mujoco.MjData(batch.model) for _ in range(batch.nthread)]
 
     def open_loop() -> float:
         t0 = time.perf_counter()
-        batch._pool.rollout(batch.model, batch._datas, start, ctrl, nstep=T * P, state=out_state,
+        pool.rollout(batch.model, datas, start, ctrl, nstep=T * P, state=out_state,
                             sensordata=out_sens)
         return time.perf_counter() - t0
 
@@ -264,6 +267,7 @@ def batched_speed(task: lk.Task, jobs: list[tuple], repeats: int) -> dict:
     finally:
         lk.release_worker()
         sim.close()
+        pool.close()
     steps = B * T * P
     med = statistics.median
     r_open = sorted(o / b for o, b in zip(open_s, batch_s, strict=True))

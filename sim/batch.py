@@ -1,4 +1,4 @@
-"""Many drops at once: a batch of cats stepped in lockstep by `mujoco.rollout` on native threads (issue 21).
+"""Many drops at once: a batch of cats stepped in lockstep on native threads by `mujoco.batch.Batch` (issue 21).
 
 The sequential path (`felis.learning.landing.evaluate.LandingSim`) runs one cat through `felis.loop.run_loop`:
 each 10 ms tick it reads the state, runs the controller, filters the command through the safety layer,
@@ -8,38 +8,41 @@ writes it and steps the physics 10 times, with a `felis.sim.landing.LandingRecor
     per tick k:  obs (B) ← last step's state and sensors      (q in encoder ticks, IMU quaternion, waist z)
                  q* (B,n) ← controller(t, q, quat, h)          (numpy, the whole batch in one call)
                  q* ← SafetyLayer.filter_many(q*), clipped to the joint ranges (what `MujocoRobot.write` does)
-                 rollout(B cats, 10 physics steps, ctrl = q*)  (threads; per-step state and sensordata back)
+                 Batch.rollout(B cats, 10 physics steps, ctrl = q*)  (threads; per-step state and sensordata back)
 
 so the physics never leaves C between ticks and the policy runs once per tick for the whole batch.
+
+**Bit for bit the sequential path.** `mujoco.batch.Batch` keeps each cat's whole integration state between
+calls, the solver's warm start (``qacc_warmstart``) included, and steps it with `mj_step`: a cat's physics is
+the loop's, bit for bit, at any thread count or batch order. (`mujoco.rollout` takes a state without the warm
+start, so each tick's first step started cold and contact-rich steps differed in the last digits; that was this
+module's stated tolerance until MuJoCo 4's `Batch`.) ``tests/sim/test_batch.py`` checks that every figure of a
+drop's outcome is the loop's exactly, compliant legs included.
 
 **The verdict's truth from sensors.** Everything `LandingRecorder` reads from ``mjData`` at each physics step
 comes back as sensor data (`verdict_sensors` adds them to the model; sensors change no dynamics): the
 upper body's z-axis (``framezaxis``, its world z = R₂₂), the waist site's position, one ``contact`` sensor per
 robot body against the floor (data ``found``) and the net force of all robot–floor contacts (its world z is
 Σ normal forces on a flat floor: the peak impact). `truth` builds the same `LandingTruth` and the caller
-judges it with the one `felis.scenarios.verdicts.landing_verdict`.
-
-**Equal to the sequential path, within a stated tolerance.** `mj_step` starts its constraint solver from the
-last step's accelerations (the warm start); `mujoco.rollout` takes a state without them, so each tick's
-first step starts cold. With MuJoCo's Newton solver both converge to the same answer to ~1e-10, which
-leaves free flight identical and makes contact-rich steps differ in the last digits; chaotic impacts can
-grow that. ``tests/sim/test_batch.py`` states and checks the tolerance: joint angles and attitude before
-touchdown within 1e-6, and the same verdict on the test drops. The body named in a verdict's reason is the
+judges it with the one `felis.scenarios.verdicts.landing_verdict`. The body named in a verdict's reason is the
 lowest-numbered body touching the floor at that step (the recorder names the first contact MuJoCo found).
+
+**Divergence.** `Batch` stops stepping a cat whose MuJoCo warnings rise (a non-finite or exploding state; the
+loop's `mj_step` would reset it) and repeats its last records; a MuJoCo error leaves the cat where it was. Either
+way its time stops, and the cat is reported diverged and stepped no further.
 
 Threads: ``nthread`` (default: every core); results do not depend on it (each cat is stepped alone).
 """
 
 from __future__ import annotations
 
-import copy
 import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import mujoco
-import mujoco.rollout
+import mujoco.batch
 import numpy as np
 
 from felis.errors import ParameterError
@@ -103,7 +106,7 @@ class DropBatch:
     Args:
         spec: the robot (floating base, waist site, foot contacts).
         servo: per-joint servo parameters, as `MujocoRobot` takes them (a design study's servos).
-        nthread: rollout threads (default: every core).
+        nthread: threads, the caller's included (default: every core).
         safety: the safety layer's configuration (`felis.loop.run_loop`'s default when None).
         sensors: an `MjSpec` edit adding more sensors for ``record`` (e.g. the landing features' body points).
         timestep: the physics step in s (default the model's, 1 ms): each control tick runs as many steps as
@@ -133,14 +136,14 @@ class DropBatch:
         if self.robot.free_joint is None:
             raise ParameterError(f"{spec.name} is fixed to the world: only a free-floating robot can be dropped")
         self.nthread = max(1, int(nthread or os.cpu_count() or 1))
-        self._pool = mujoco.rollout.Rollout(nthread=self.nthread)
-        self._datas = [mujoco.MjData(m) for _ in range(self.nthread)]
-        self._models: list[mujoco.MjModel] = []  # the model once per cat of a tick (rollout's unchecked call)
-        self._stiff: dict[bytes, mujoco.MjModel] = {}  # compliant copies of the model (`_stiff_model`)
-        self.nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        self._sims: mujoco.batch.Batch | None = None  # made for the largest batch run so far (`_batch`)
+        self._gains: tuple[np.ndarray, np.ndarray] | None = None  # its per-cat actuator gains, once any is soft
+        self.nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)  # ``record``'s state rows
         r = self.robot
         self._qadr = 1 + np.asarray(r._qadr)  # FULLPHYSICS: time, qpos, qvel, …
         self._act = np.asarray(r._act)
+        self._kp = m.actuator_gainprm[self._act, 0].copy()  # the armed gains `Command.stiffness` scales
+        self._kb = m.actuator_biasprm[self._act, 1].copy()
         self._qstep, _ = quantization_steps(np.array([j.m_per_rad for j in spec.joints]))
         self._imu = np.asarray(r._imu[:4]) if r._imu is not None else None
         adr = lambda name: int(m.sensor_adr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SENSOR, PREFIX + name)])  # noqa: E731
@@ -159,7 +162,7 @@ class DropBatch:
         self.last_ctrl: np.ndarray | None = None  # (active, 10, nu): the controls of the last tick (benchmarks)
 
     def close(self) -> None:
-        self._pool.close()
+        self._sims = self._gains = None  # the batch's threads end with it
         self.robot.close()
 
     def __enter__(self) -> DropBatch:
@@ -168,34 +171,52 @@ class DropBatch:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _stiff_model(self, stiffness: np.ndarray) -> mujoco.MjModel:
-        """The model with its position actuators' kp scaled by ``stiffness`` (per joint, clamped as the safety
-        layer does), as `MujocoRobot` applies `felis.hal.Command.stiffness`; one copy per distinct value."""
-        s = np.minimum(np.maximum(np.asarray(stiffness, dtype=float), MIN_STIFFNESS), 1.0)
-        if np.all(s == 1.0):
-            return self.model
-        key = s.tobytes()
-        m = self._stiff.get(key)
-        if m is None:
-            m = self._stiff[key] = copy.deepcopy(self.model)
-            for i in np.flatnonzero(s != 1.0):
-                a = self._act[i]
-                m.actuator_gainprm[a, 0] *= s[i]
-                m.actuator_biasprm[a, 1] *= s[i]
-        return m
+    def _batch(self, n: int) -> mujoco.batch.Batch:
+        """A `mujoco.batch.Batch` of at least ``n`` cats (kept; a larger run makes a larger one), gains as armed."""
+        if self._sims is None or self._sims.nsim < n:
+            self._sims, self._gains = mujoco.batch.Batch(self.model, n, nthread=self.nthread), None
+        elif self._gains is not None:
+            self._gains[0][:] = self.model.actuator_gainprm
+            self._gains[1][:] = self.model.actuator_biasprm
+        return self._sims
+
+    def _set_stiffness(self, rows: np.ndarray | slice, stiffness: np.ndarray | None) -> None:
+        """Cats ``rows``' position gains scaled by ``stiffness`` (their rows, per joint, clamped as the safety layer
+        does), as `MujocoRobot` applies `felis.hal.Command.stiffness`: kp·s and −kp·s, the same products."""
+        if stiffness is None and self._gains is None:
+            return
+        if self._gains is None:
+            self._gains = (self._sims.expand("actuator_gainprm"), self._sims.expand("actuator_biasprm"))
+        s = 1.0 if stiffness is None else np.minimum(np.maximum(np.asarray(stiffness, dtype=float), MIN_STIFFNESS), 1.0)
+        gain, bias = self._gains
+        if isinstance(rows, slice):
+            gain[rows, self._act, 0] = self._kp * s
+            bias[rows, self._act, 1] = self._kb * s
+        else:
+            gain[rows[:, None], self._act, 0] = self._kp * s
+            bias[rows[:, None], self._act, 1] = self._kb * s
 
     # ------------------------------------------------------------------ start states
-    def initial(self, drops: Sequence[Drop]) -> tuple[np.ndarray, np.ndarray]:
-        """(states (B, nstate), sensordata (B, nsensordata)) of the cats released as ``drops`` say: the model's
-        pose, turned and lifted by `felis.sim.scenarios.apply_drop`, at rest, time 0."""
+    def _start(self, drops: Sequence[Drop]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(integration rows (B, `mjSTATE_INTEGRATION`), FULLPHYSICS states (B, nstate), sensordata (B, nsens)) of
+        the cats released as ``drops`` say: `MujocoRobot.reset`, then `felis.sim.scenarios.apply_drop`."""
         r, m = self.robot, self.model
+        ints = np.empty((len(drops), mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_INTEGRATION)))
         states = np.empty((len(drops), self.nstate))
         sens = np.empty((len(drops), m.nsensordata))
         for i, d in enumerate(drops):
             r.reset()
             apply_drop(r, d)
+            mujoco.mj_getState(m, r.data, ints[i], mujoco.mjtState.mjSTATE_INTEGRATION)
             mujoco.mj_getState(m, r.data, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
             sens[i] = r.data.sensordata
+        return ints, states, sens
+
+    def initial(self, drops: Sequence[Drop]) -> tuple[np.ndarray, np.ndarray]:
+        """(states (B, nstate), sensordata (B, nsensordata)) of the cats released as ``drops`` say: the model's
+        pose, turned and lifted by `felis.sim.scenarios.apply_drop`, at rest, time 0 (FULLPHYSICS states, as
+        `mujoco.rollout` takes them)."""
+        _, states, sens = self._start(drops)
         return states, sens
 
     # ------------------------------------------------------------------ the run
@@ -208,8 +229,8 @@ class DropBatch:
         position targets (q in encoder ticks, quat (w, x, y, z) from the IMU, h the waist height). Each cat
         runs ``round((fall_time + margin_s) · rate_hz)`` ticks (as `LandingSim`) unless ``ticks`` gives them.
         ``record(k, states (B, S, nstate), sensordata (B, S, nsens), active)`` (S: physics steps a tick, 10 at the
-        model's 1 ms): called after each tick's physics with the rows of the cats still running (``active``: their
-        indices), e.g. to record motion."""
+        model's 1 ms; FULLPHYSICS states): called after each tick's physics with the rows of the cats still
+        running (``active``: their indices), e.g. to record motion."""
         per = int(round(1.0 / (rate_hz * self.model.opt.timestep)))
         if per < 1 or abs(rate_hz * self.model.opt.timestep * per - 1.0) > 1e-9:
             raise ParameterError(f"the batch runs whole physics steps per tick: rate {rate_hz} Hz does not divide "
@@ -218,96 +239,102 @@ class DropBatch:
         if B == 0:
             return []
         n_ticks = (np.array([int(round((d.fall_time + margin_s) * rate_hz)) for d in drops]) if ticks is None
-                   else np.asarray(ticks, dtype=int))
+                   else np.asarray(ticks, dtype=int).copy())
         m = self.model
-        state, sens = self.initial(drops)
+        rows0, state, sens = self._start(drops)
+        sims = self._batch(B)
+        sims.state[:B] = rows0
+        FULL, TIME = mujoco.mjtState.mjSTATE_FULLPHYSICS, mujoco.mjtState.mjSTATE_TIME
+        qpos = sims.bind("qpos")  # live: the cats' state rows
+        qadr = np.asarray(self.robot._qadr)
         t = state[:, 0].copy()
         q = self._quantize(state[:, self._qadr])
         quat = sens[:, self._imu] if self._imu is not None else np.tile([1.0, 0, 0, 0], (B, 1))
         controller.reset(t, q)
         last = np.clip(q, self.safety.lower, self.safety.upper)
         lower, upper = self.spec.lower, self.spec.upper
-        # the verdict's rows, per cat: touchdown step index into the recorded arrays, and the arrays
+        # per cat and physics step, what the verdict reads: time; up z, waist z, net floor force; bodies on the floor
         steps = int(n_ticks.max()) * per
-        up = np.full((B, steps), np.nan)
-        waist = np.full((B, steps), np.nan)
         tt = np.full((B, steps), np.nan)
-        floor_body = np.full((B, steps), -1, dtype=np.int32)
-        off_foot = np.full((B, steps), -1, dtype=np.int32)
-        peak = np.zeros(B)
-        final_up = sens[:, self._up].copy()
+        rec = np.full((B, steps, 3), np.nan)
+        found = np.zeros((B, steps, self._floor_adr.size), dtype=bool)
+        cols = np.array([self._up, self._waist, self._force])
+        dt = m.opt.timestep
         diverged = np.zeros(B, dtype=bool)
         ctrl = np.zeros((B, per, m.nu))
-        out_state = np.empty((B, per, self.nstate))
+        out_state = np.empty((B, per, self.nstate)) if record is not None else None  # ``record``'s only
         out_sens = np.empty((B, per, m.nsensordata))
+        out_time = np.empty((B, per, 1))
         active = np.arange(B)
         h = sens[:, self._waist].copy()
         for k in range(int(n_ticks.max())):
             active = active[n_ticks[active] > k]
             if active.size == 0:
                 break
-            a = active
+            na = active.size
+            a = slice(0, B) if na == B else active  # every cat: slices, not gathers
+            ids = None if na == sims.nsim else active.astype(np.int32)
             cmd = controller(t, q, quat, h)
             cmd = self.safety.filter_many(cmd, last)
             last = sent = np.minimum(np.maximum(cmd, lower), upper)  # what MujocoRobot.write sends
-            na = a.size
             c = ctrl[:na]
             c[:, :, self._act] = sent[a][:, None, :]
-            st, sd = out_state[:na], out_sens[:na]
+            sd, tm = out_sens[:na], out_time[:na]
+            out = {"sensordata": sd, TIME: tm}
+            if record is not None:
+                out[FULL] = st = out_state[:na]
             self.last_ctrl = c
             stiffness = getattr(controller, "stiffness", None)  # `Command.stiffness` per cat, when any is soft
-            if stiffness is not None:
-                models = [self._stiff_model(stiffness[i]) for i in a]
-                self._models = []
-            else:
-                if len(self._models) != na:
-                    self._models = [m] * na
-                models = self._models
-            self._pool.rollout(models, self._datas, np.ascontiguousarray(state[a]), c, nstep=per,
-                               state=st, sensordata=sd, skip_checks=True,
-                               chunk_size=max(1, na // (self.nthread * 16)))  # a thread waits ≤ 1/16 at the end
-            # divergence: MuJoCo resets a cat whose state went non-finite (its time goes back)
-            tnow = st[:, :, 0]
-            bad = (np.diff(np.concatenate([t[a, None], tnow], axis=1), axis=1) <= 0).any(axis=1)
-            bad |= ~np.isfinite(st[:, -1, :]).all(axis=1)
-            diverged[a[bad]] = True
-            lo = k * per
-            sl = slice(lo, lo + per)
+            self._set_stiffness(a, None if stiffness is None else stiffness[a])
+            try:
+                sims.rollout(per, c, record=tuple(out), ids=ids, out=out)
+            except mujoco.batch.SimulationError as e:  # MuJoCo raised: those cats kept their state (module doc)
+                failed = np.isin(active, e.ids)
+                tm[failed] = t[active[failed], None, None]
+                sd[failed] = 0.0
+                if record is not None:
+                    st[failed] = np.nan
+            tnow = tm[:, :, 0]
+            # divergence: a cat whose time stopped (warnings rose, or MuJoCo raised), or non-finite sensors
+            bad = (tnow[:, -1] < t[a] + (per - 0.5) * dt) | ~np.isfinite(sd[:, -1]).all(axis=1)
+            if bad.any():
+                diverged[active[bad]] = True
+                n_ticks[active[bad]] = k + 1  # stepped no further
+            sl = slice(k * per, (k + 1) * per)
             tt[a, sl] = tnow
-            up[a, sl] = sd[:, :, self._up]
-            waist[a, sl] = sd[:, :, self._waist]
-            found = sd[:, :, self._floor_adr] > 0  # (na, 10, bodies)
-            anyb = found.any(axis=2)
-            floor_body[a, sl] = np.where(anyb, self._floor_body[np.argmax(found, axis=2)], -1)
-            off = found & ~self._is_foot
-            anyo = off.any(axis=2)
-            off_foot[a, sl] = np.where(anyo, self._floor_body[np.argmax(off, axis=2)], -1)
-            peak[a] = np.maximum(peak[a], np.abs(sd[:, :, self._force]).max(axis=1))
-            final_up[a] = sd[:, -1, self._up]
+            rec[a, sl] = sd[:, :, cols]
+            found[a, sl] = sd[:, :, self._floor_adr] > 0
             if record is not None:
-                record(k, st, sd, a)
-            state[a] = st[:, -1]
+                record(k, st, sd, active)
             t[a] = tnow[:, -1]
-            q[a] = self._quantize(st[:, -1, self._qadr])
+            q[a] = self._quantize(qpos[a][:, qadr])
             if self._imu is not None:
                 quat[a] = sd[:, -1][:, self._imu]
             h[a] = sd[:, -1, self._waist]
-        out = []
-        for i in range(B):
-            rows = np.flatnonzero(floor_body[i] >= 0)
-            if rows.size:  # touchdown to touchdown + WINDOW_S, what the recorder keeps
-                i0 = int(rows[0])
-                stop = np.flatnonzero(tt[i, i0:] >= tt[i, i0] + WINDOW_S - 1e-9)
-                i1 = i0 + (int(stop[0]) + 1 if stop.size else int(np.count_nonzero(np.isfinite(tt[i, i0:]))))
-                sel = slice(i0, i1)
-            else:
-                sel = slice(0, 0)
-            truth = LandingTruth(t=tt[i, sel], up_z=up[i, sel], waist_m=waist[i, sel], floor_body=floor_body[i, sel],
-                                 off_foot_body=off_foot[i, sel], bodies=self.bodies,
-                                 standing_waist_m=float(standing_waist_m))
-            out.append(BatchResult(truth, float(peak[i] / self.weight) if self.weight > 0 else 0.0,
-                                   float(final_up[i]), bool(diverged[i])))
-        return out
+        return [self._result(tt[i], rec[i], found[i], int(n_ticks[i]) * per, diverged[i], sens[i, self._up],
+                             standing_waist_m) for i in range(B)]
+
+    def _result(self, tt: np.ndarray, rec: np.ndarray, found: np.ndarray, n: int, diverged: bool,
+                up0: float, standing_waist_m: float) -> BatchResult:
+        """A cat's `BatchResult` from its ``n`` recorded steps (time; up z, waist z, floor force; bodies found
+        on the floor): the truth is touchdown to touchdown + `WINDOW_S`, what the recorder keeps."""
+        on = found[:n].any(axis=1)
+        rows = np.flatnonzero(on)
+        if rows.size:
+            i0 = int(rows[0])
+            stop = np.flatnonzero(tt[i0:n] >= tt[i0] + WINDOW_S - 1e-9)
+            sel = slice(i0, i0 + (int(stop[0]) + 1 if stop.size else n - i0))
+        else:
+            sel = slice(0, 0)
+        f = found[sel]
+        off = f & ~self._is_foot
+        floor_body = np.where(on[sel], self._floor_body[np.argmax(f, axis=1)], -1).astype(np.int32)
+        off_foot = np.where(off.any(axis=1), self._floor_body[np.argmax(off, axis=1)], -1).astype(np.int32)
+        truth = LandingTruth(t=tt[sel], up_z=rec[sel, 0], waist_m=rec[sel, 1], floor_body=floor_body,
+                             off_foot_body=off_foot, bodies=self.bodies, standing_waist_m=float(standing_waist_m))
+        peak = float(np.abs(rec[:n, 2]).max()) if n else 0.0
+        final_up = float(rec[n - 1, 0]) if n else float(up0)
+        return BatchResult(truth, peak / self.weight if self.weight > 0 else 0.0, final_up, bool(diverged))
 
     def _quantize(self, q: np.ndarray) -> np.ndarray:
         """Joint positions as the servo reports them: whole encoder ticks (`MujocoRobot` with ``quantize``)."""
