@@ -190,7 +190,8 @@ def release_batch_worker() -> None:
 def evaluate_batch(jobs: Sequence[tuple[SimpleBehaviour | ComplexBehaviour, int | tuple]]) -> list[np.ndarray]:
     """`evaluate_job` for a list of jobs at once, as one batch of `felis.sim.batch.DropBatch` (every cat stepped
     together, each job's behaviour evaluated for its rows in one numpy call per tick): the same (f, D, S, up_z,
-    landed) per job, within the batch's stated tolerance of the sequential path. Needs `init_batch_worker`."""
+    landed) per job as the sequential path (its physics bit for bit; the nets' batched rounding ~1e-13).
+    Needs `init_batch_worker`."""
     if _BATCH is None:
         raise RuntimeError("evaluate_batch needs init_batch_worker(task) in this process first")
     from felis.controllers.landing import LandingBatch

@@ -397,9 +397,10 @@ def test_policy_file_loads_and_runs_in_the_landing_controller(tmp_path, samples)
     finally:
         sim.close()
     final = res["final"][1]
-    # training runs batched (`felis.sim.batch`): the sequential rollout agrees within the batch's tolerance
+    # training runs batched (`felis.sim.batch`, the loop's physics bit for bit): the sequential rollout agrees
+    # to the nets' rounding (a batch's einsum against one cat's matrix product: ~1e-13)
     assert marks.tolist() == pytest.approx([final["f"], final["D"], final["S"], final["up_z"],
-                                            float(final["landed"])], rel=1e-6, abs=1e-6)
+                                            float(final["landed"])], rel=1e-9, abs=1e-9)
 
 
 def test_f_only_mode_runs(tmp_path, samples):
