@@ -27,9 +27,10 @@ robot body against the floor (data ``found``) and the net force of all robot–f
 judges it with the one `felis.scenarios.verdicts.landing_verdict`. The body named in a verdict's reason is the
 lowest-numbered body touching the floor at that step (the recorder names the first contact MuJoCo found).
 
-**Divergence.** `Batch` stops stepping a cat whose MuJoCo warnings rise (a non-finite or exploding state; the
-loop's `mj_step` would reset it) and repeats its last records; a MuJoCo error leaves the cat where it was. Either
-way its time stops, and the cat is reported diverged and stepped no further.
+**Divergence.** MuJoCo resets a cat whose state went non-finite or huge (as the loop's `mj_step` does: time goes
+back to 0) and raises its warning counter, and `Batch` then stops stepping it, repeating its last records; a
+MuJoCo error leaves the cat where it was. Either way its time does not advance a whole tick, and the cat is
+reported diverged and stepped no further; the other cats of its batch are untouched (``tests/sim/test_batch.py``).
 
 Threads: ``nthread`` (default: every core); results do not depend on it (each cat is stepped alone).
 """

@@ -147,3 +147,33 @@ def test_a_finer_physics_step_runs_more_steps_a_tick_and_the_same_free_fall():
     with pytest.raises(ParameterError, match="whole physics steps"):
         sim.batch.run([d], batch_controller(sim.spec, "passive", [d]), sim.standing_waist_m)
     sim.close()
+
+
+def test_a_cat_whose_physics_diverges_is_reported_and_stopped_and_the_others_are_untouched():
+    """A cat whose state blows up (qvel set absurd in its row of the batch's live state, as
+    `test_sim_backend` does to one `MujocoRobot`) comes back diverged, stepped no further; every other cat
+    of its batch gets what it gets without it, bit for bit."""
+    from felis.learning.landing.evaluate import outcome_of
+
+    drops = [Drop(0.0, 0.0, 0.0, 0.5), Drop(30.0, 0.0, 0.0, 0.5), Drop(0.0, 40.0, 0.0, 1.0)]
+    sim = BatchLandingSim(nthread=2)
+    try:
+        clean = sim.batch.run(drops, batch_controller(sim.spec, "passive", drops), sim.standing_waist_m)
+        rows: list[np.ndarray] = []
+
+        def poke(k, st, sd, active):
+            rows.append(active.copy())
+            if k == 5:
+                sim.batch._sims.bind("qvel")[1] = 1e12  # the cat's row of the batch's state
+
+        got = sim.batch.run(drops, batch_controller(sim.spec, "passive", drops), sim.standing_waist_m, record=poke)
+    finally:
+        sim.close()
+    assert got[1].diverged and not clean[1].diverged
+    assert 1 in rows[6] and all(1 not in r for r in rows[7:])  # its tick 6 ran (and stopped), then no more
+    assert outcome_of(drops[1], "passive", got[1], sim.standing_waist_m).why == "physics diverged"
+    for i in (0, 2):
+        assert not got[i].diverged and got[i].peak_impact == clean[i].peak_impact
+        assert got[i].final_up_z == clean[i].final_up_z
+        assert np.array_equal(got[i].truth.t, clean[i].truth.t)
+        assert np.array_equal(got[i].truth.up_z, clean[i].truth.up_z)
