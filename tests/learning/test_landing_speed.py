@@ -1,4 +1,4 @@
-"""Smoke test of ``bench/landing_speed.py``: its two parts on a tiny setup (no timing claims)."""
+"""Smoke test of ``bench/landing_speed.py``: its three parts on a tiny setup (no timing claims)."""
 
 from dataclasses import replace
 
@@ -30,3 +30,8 @@ def test_landing_speed_parts(bench):
     assert pool["identical_results"] is True
     assert pool["jobs_per_map"] == 2 and pool["speedup"] > 0 and isinstance(pool["met"], bool)
     assert lk._WORKER is None  # both parts release this process's simulation
+    batched = bench.batched_speed(task, jobs, repeats=1)  # part 3: the batch against open loop and sequential
+    for key in ("open_loop_steps_per_s", "batched_steps_per_s", "sequential_steps_per_s", "ratio_open_loop",
+                "ratio_today"):
+        assert batched[key] > 0
+    assert isinstance(batched["met"], bool) and lk._WORKER is None
