@@ -19,9 +19,10 @@ the nearest training orientation, ``shipped`` the shipped trained nets, ``librar
 (`check_policy`).
 
 `run_drops` runs a list of drops batched (`BatchLandingSim` on `felis.sim.batch.DropBatch`: every cat of a batch
-stepped together by `mujoco.rollout` on every core, the policy evaluated once per tick for the batch); results
-are in drop order and identical whatever the thread count. `run_drops_sequential` is the one-episode-at-a-time
-path through `felis.loop.run_loop` in a process pool, which the batch is tested against.
+stepped together by `mujoco.batch` on every core, the policy evaluated once per tick for the batch); results
+are in drop order and identical whatever the thread count, and the physics is the sequential path's bit for bit.
+`run_drops_sequential` is the one-episode-at-a-time path through `felis.loop.run_loop` in a process pool, which
+the batch is tested against.
 `summarise` gives the success rate (landed / drops) and one entry per drop.
 """
 
