@@ -442,7 +442,8 @@ class LibraryRule:
     the motion's joint offsets from the release pose (the velocity table summed, linear between ticks) and t′ the
     last call, so the controller's integrated targets are p(t) whatever the ticks' jitter (servos on a wall clock:
     a tick 7 ms late once turned a landing of the demo's drop into a fall on the back after touchdown). On a
-    simulation's exact ticks that is the table's row, as `LibraryBatch` plays it."""
+    simulation's exact ticks, one after the other, that is the table's row to rounding, and it returns the row
+    itself, as `LibraryBatch` plays it: a sequential drop is then the batch's bit for bit."""
 
     kind = "library"
 
@@ -484,9 +485,20 @@ class LibraryRule:
             self.start(np.asarray(it, dtype=float))
         p = self.path(t)
         dt = t - self._t
-        v = (p - self._p) / dt if dt > 0 else np.zeros(12)
+        k, k0 = _tick(t), _tick(self._t)
+        if k is not None and k0 == k - 1 and k < len(self.table):  # the next exact tick: its row, as the batch
+            v = self.table[k]
+        else:
+            v = (p - self._p) / dt if dt > 0 else np.zeros(12)
         self._t, self._p = t, p
         return v
+
+
+def _tick(t: float) -> int | None:
+    """The control tick ``t`` s after release is on (a simulation's clock), or None (off the tick grid)."""
+    s = max(0.0, t / DT)
+    k = round(s)
+    return k if abs(s - k) < 1e-6 else None
 
 
 class LibraryBatch:
