@@ -17,7 +17,9 @@ calls, the solver's warm start (``qacc_warmstart``) included, and steps it with 
 the loop's, bit for bit, at any thread count or batch order. (`mujoco.rollout` takes a state without the warm
 start, so each tick's first step started cold and contact-rich steps differed in the last digits; that was this
 module's stated tolerance until MuJoCo 4's `Batch`.) ``tests/sim/test_batch.py`` checks that every figure of a
-drop's outcome is the loop's exactly, compliant legs included.
+drop's outcome is the loop's exactly under controllers that compute the same numbers in both paths (the pose
+held, the motion library), and within 1e-9 under the evolved nets, whose batched ``einsum`` rounds in another
+order than one cat's matrix product (compliant legs included).
 
 **The verdict's truth from sensors.** Everything `LandingRecorder` reads from ``mjData`` at each physics step
 comes back as sensor data (`verdict_sensors` adds them to the model; sensors change no dynamics): the
