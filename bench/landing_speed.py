@@ -253,8 +253,7 @@ def batched_speed(task: lk.Task, jobs: list[tuple], repeats: int) -> dict:
 
     def open_loop() -> float:
         t0 = time.perf_counter()
-        pool.rollout(batch.model, datas, start, ctrl, nstep=T * P, state=out_state,
-                            sensordata=out_sens)
+        pool.rollout(batch.model, datas, start, ctrl, nstep=T * P, state=out_state, sensordata=out_sens)
         return time.perf_counter() - t0
 
     lk.init_worker(task)

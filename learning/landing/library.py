@@ -471,10 +471,10 @@ class LibraryRule:
 
     def path(self, t: float) -> np.ndarray:
         """p(t): the motion's joint offsets (rad) at t s after release, linear between ticks."""
-        s = max(0.0, float(t) / DT)
-        k = round(s)
-        if abs(s - k) < 1e-6:  # on a tick (a simulation's clock): the tick's row exactly
+        k = _tick(float(t))
+        if k is not None:  # on a tick (a simulation's clock): the tick's row exactly
             return self._path[min(k, len(self._path) - 1)]
+        s = max(0.0, float(t) / DT)
         i = min(int(s), len(self._path) - 1)
         j = min(i + 1, len(self._path) - 1)
         return self._path[i] + (s - i) * (self._path[j] - self._path[i])
