@@ -8,12 +8,17 @@ each drop's motion — the ceiling's (from its results file) and the library's c
 from ``--mm`` millimetres above and below it, and prints how many land at the exact height, how many land on
 average over the heights tried, and how many land at every one of them.
 
-    python bench/landing_height.py [--height 3] [--ceiling RESULTS.json] [--mm 3] [--drops N] [--json]
-    python bench/landing_height.py --design rubber-paw [--height 3]   # the design study's optimum, per design
+    python bench/landing_height.py [--height 3] [--ceiling RESULTS.json] [--mm 3] [--drops N] [--on 4ms-paw] [--json]
+    python bench/landing_height.py --design soft-rubber-paw [--height 3]   # the design study's optimum, per design
     python bench/landing_height.py --band [--height 3] [--ceiling RESULTS.json]   # the ceiling over the band
-    python bench/landing_height.py --scan 4 [--height 3]   # why: the library's choice over ±12 mm, 0.5 mm apart
-    python bench/landing_height.py --penetration [--height 3] [--on rubber-paw]   # the paw's penetration, by step
-    python bench/landing_height.py --timesteps 1 0.5 0.25 [--height 3] [--ceiling FILE] [--on rubber-paw]
+    python bench/landing_height.py --scan 4 [--height 3] [--on 4ms-paw]   # why: the library's choice over ±12 mm
+    python bench/landing_height.py --penetration [--height 3] [--on 4ms-paw]   # the paw's penetration, by step
+    python bench/landing_height.py --timesteps 1 0.5 0.25 [--height 3] [--ceiling FILE] [--on 4ms-paw]
+
+``--on DESIGN`` (default ``cat``, the described cat): the cat every run goes on, with its own vote of the library
+(`felis.learning.landing.designs.design_library`) and its shipped ceiling
+(``learning/weights/landing_optimum_warm[_<design>]-<h>m.json``) unless ``--library`` and ``--ceiling`` name others,
+at its own physics step (``4ms-paw``, the cat as described until 2026-11-29: 1 ms; the described cat: 0.5 ms).
 
 ``--design NAME``: instead, the design study's per-drop optimum (searched from scratch, on the same drops) for that
 design (`learning/weights/landing_design.jsonl`, `bench/landing_design.py`), run on that design's cat: how much a
@@ -31,20 +36,19 @@ height (the file's own among them). About 20 min on 2 cores for 100 drops from 3
 each, then the other heights for those that can still win), 12 min from 1 m.
 
 ``--scan N``: why a millimetre decides. The library's choice for each of the first N drops, run from every 0.5 mm
-of h − 12 … h + 12 mm: from 3 m the landings come and go with a period of about √(2gh)·Δt, the distance the cat
-falls in one physics step (7.7 mm at 3 m and Δt = 1 ms; `period_mm` finds it). A physical landing has no such
-period: it is the step's phase at the first contact, how deep the foot is in the floor when the contact is first
-seen. ``--penetration``: the cat dropped level with its joints held, from h and every 1 mm up to the next step's
-fall, at the model's Δt and at a quarter of it (plain `mujoco.mj_step`): the foot's deepest penetration into the
+of h − 12 … h + 12 mm: on ``4ms-paw`` from 3 m the landings come and go with a period of about √(2gh)·Δt, the
+distance the cat falls in one physics step (7.7 mm at 3 m and Δt = 1 ms; `period_mm` finds it). A physical landing
+has no such period: it is the step's phase at the first contact, how deep the foot is in the floor when the contact
+is first seen. ``--penetration``: the cat dropped level with its joints held, from h and every 1 mm up to the next
+step's fall, at its Δt and at a quarter of it (plain `mujoco.mj_step`): the foot's deepest penetration into the
 floor and whether a leg link (its capsule ends 11 mm above the bottom of the foot) touches the floor.
 
-``--timesteps MS …``: the library's choice and the ceiling file's motions run at each physics step (ms; the
-model's is 1 ms, a control tick is 10 ms and runs as many steps as fit) on the described cat or ``--on DESIGN``
-(give a ceiling searched on that design): which landings are the cat's and which the step's. A result that
-holds as the step shrinks is converged; one that goes is numerical.
+``--timesteps MS …``: the library's choice and the ceiling file's motions run at each physics step (ms; a control
+tick is 10 ms and runs as many steps as fit) on the described cat or ``--on DESIGN``: which landings are the cat's
+and which the step's. A result that holds as the step shrinks is converged; one that goes is numerical.
 
-The default ceiling is the shipped results file for ``random:100 --seed 0`` at that height
-(``learning/weights/landing_optimum_warm-<h>m.json``); its ``seed`` and heights say which drops to run. Nothing
+The default ceiling is the shipped results file for ``random:100 --seed 0`` at that height on that cat; its
+``seed`` and heights say which drops to run. Nothing
 is random: each (drop, motion, height) is simulated once, by `felis.learning.landing.optimum.evaluate`.
 About 30 s on 2 cores for 100 drops at ±3 mm.
 """
@@ -68,8 +72,9 @@ from felis.scenarios.drop import Drop, random_drops
 WEIGHTS = Path(__file__).resolve().parents[1] / "learning" / "weights"
 
 
-def ceiling_file(height_m: float) -> Path:
-    return WEIGHTS / f"landing_optimum_warm-{height_m:g}m.json"
+def ceiling_file(height_m: float, on: str = "cat") -> Path:
+    """The shipped ceiling of ``random:100 --seed 0`` from ``height_m`` on design ``on`` at its own step."""
+    return WEIGHTS / f"landing_optimum_warm{'' if on == 'cat' else '_' + on}-{height_m:g}m.json"
 
 
 def read_ceiling(path: Path, height_m: float) -> tuple[list[Drop], np.ndarray, np.ndarray]:
@@ -231,7 +236,7 @@ def main() -> None:
     ap.add_argument("--height", type=float, default=3.0)
     ap.add_argument("--ceiling", type=Path, help="a --policy optimum --json results file (default: the shipped "
                     "seed-0 file for --height)")
-    ap.add_argument("--library", type=Path, default=DEFAULT_LIBRARY)
+    ap.add_argument("--library", type=Path, help="a motion library (default: the --on cat's vote of the shipped one)")
     ap.add_argument("--design", help="instead: the design study's optimum for this design, on its own cat")
     ap.add_argument("--mm", type=int, default=3, help="heights from −MM to +MM mm in 1 mm steps (default 3)")
     ap.add_argument("--drops", type=int, help="only the first N drops")
@@ -240,8 +245,8 @@ def main() -> None:
                     "every 0.5 mm of ±12 mm, and the period of its landings (module doc)")
     ap.add_argument("--timesteps", type=float, nargs="+", metavar="MS", help="instead: the library's choice and "
                     "the ceiling's motions at each physics step (ms), on the described cat or --on DESIGN")
-    ap.add_argument("--on", default="cat", metavar="DESIGN", help="--timesteps, --penetration: the design study's "
-                    "cat to run on")
+    ap.add_argument("--on", default="cat", metavar="DESIGN", help="the cat every run goes on, with its vote and its "
+                    "ceiling (default cat, the described one; 4ms-paw: the cat as described until 2026-11-29)")
     ap.add_argument("--penetration", action="store_true", help="instead: a level drop's paw penetration and leg-link "
                     "contact by the height's phase in a physics step, at the model's step and a quarter of it")
     ap.add_argument("--json", action="store_true")
@@ -259,13 +264,15 @@ def main() -> None:
             raise SystemExit("landing_height: --scan needs at least 1 drop")
         args.drops = args.scan
     try:
-        if args.design:
-            from felis.learning.landing.designs import get_design
+        from felis.learning.landing.designs import design_library, get_design
 
+        get_design(args.on)
+        args.library = args.library or design_library(args.on) or DEFAULT_LIBRARY
+        if args.design:
             get_design(args.design)
             drops, ceil_x, ceil_landed = read_design(WEIGHTS / "landing_design.jsonl", args.design, args.height)
         else:
-            drops, ceil_x, ceil_landed = read_ceiling(args.ceiling or ceiling_file(args.height), args.height)
+            drops, ceil_x, ceil_landed = read_ceiling(args.ceiling or ceiling_file(args.height, args.on), args.height)
             lib = load_library(args.library)
     except (OSError, ValueError, ParameterError) as e:
         raise SystemExit(f"landing_height: {e}") from None
@@ -274,9 +281,9 @@ def main() -> None:
     offsets = list(range(-args.mm, args.mm + 1))
     if args.timesteps is not None:
         return _timesteps(args, drops, ceil_x, ceil_landed, lib)
-    sim = _worker_sim(args.design or "cat")
+    sim = _worker_sim(args.design or args.on)
     if args.scan is not None:
-        return _scan(args, sim, drops, load_library(args.library))
+        return _scan(args, sim, drops, lib)
     first = "optimum" if args.design else "ceiling"  # the design study's, from scratch; or the warm-started one
     policies = [(first, ceil_x)]
     if not args.design:
@@ -365,19 +372,19 @@ def _timesteps(args, drops: list[Drop], ceil_x: np.ndarray, ceil_landed: np.ndar
 SCAN_STEP_MM, SCAN_MM = 0.5, 12.0
 
 
-def _model_step(height_m: float) -> tuple[float, float]:
-    """(the model's physics step in s, how far a cat dropped from ``height_m`` falls in it at touchdown, mm)."""
+def _model_step(height_m: float, on: str = "cat") -> tuple[float, float]:
+    """(design ``on``'s physics step in s, how far a cat dropped from ``height_m`` falls in it at touchdown, mm)."""
+    from felis.learning.landing.designs import design_timestep
     from felis.rotations import G
-    from felis.sim.batch import PHYSICS_PER_TICK
 
-    dt = 1.0 / (100.0 * PHYSICS_PER_TICK)
+    dt = design_timestep(on)
     return dt, math.sqrt(2.0 * G * height_m) * dt * 1000.0
 
 
 def _scan(args, sim, drops: list[Drop], lib) -> None:
     offsets = np.round(np.arange(-SCAN_MM, SCAN_MM + 1e-9, SCAN_STEP_MM), 3)
     xs = np.array([lib.choose(drop_up(d), d.height_m) for d in drops])
-    _, fall_mm = _model_step(args.height)
+    _, fall_mm = _model_step(args.height, args.on)
     rows = []
     for d, x in zip(drops, xs, strict=True):
         R = landed_at(sim, [d], x[None], list(offsets))[0]
@@ -403,7 +410,7 @@ def _penetration(args) -> None:
         get_design(args.on)
     except ParameterError as e:
         raise SystemExit(f"landing_height: {e}") from None
-    dt, fall_mm = _model_step(args.height)
+    dt, fall_mm = _model_step(args.height, args.on)
     offsets = list(range(0, math.ceil(fall_mm) + 1))
     res = {f"{step * 1000:g}": penetration(args.height, offsets, step, args.on) for step in (dt, dt / 4)}
     if args.json:

@@ -1,14 +1,15 @@
 """Bench: the motion library's vote taken again on another paw and physics step (issue 21: "a library voted on that
 paw and step").
 
-The shipped library's shelf for one height voted on the described cat (4 ms paws) at the 1 ms step: which of its
-candidates (entries and their mirror images) lands each probe. On a cat whose impact a finer step resolves (the
-design study's `rubber-paw`, τ = 2 ms, at 0.5 ms) the same motions land other attitudes. This re-tries, for each
-probe, the candidates the vote would weigh there: the ``--top`` best by the shipped vote at the probe's attitude and
-the ``--nearest`` nearest by attitude (the union), on DESIGN at STEP; a shelf whose ``lands`` are those results
-(the pairs not re-tried count as not landing) is then the re-voted library, written to ``--out``, and evaluated
-beside the shipped one on ``random:100`` of each ``--seeds`` (`felis eval landing`'s drops and verdict) at the same
-design and step.
+A library's shelf for one height voted on one cat and step: which of its candidates (entries and their mirror
+images) lands each probe. On another paw, or at a step that resolves the impact differently, the same motions land
+other attitudes (the library was voted on the 4 ms-paw cat at 1 ms, the cat as described until 2026-11-29, and
+then, by this bench, on the described cat's rubber paws at 0.5 ms, then the design ``rubber-paw``). This
+re-tries, for each probe, the candidates the vote would weigh there: the ``--top`` best by the shipped vote at the
+probe's attitude and the ``--nearest`` nearest by attitude (the union), on DESIGN at STEP; a shelf whose ``lands``
+are those results (the pairs not re-tried count as not landing) is then the re-voted library, written to
+``--out``, and evaluated beside the shipped one on ``random:100`` of each ``--seeds`` (`felis eval landing`'s drops
+and verdict) at the same design and step.
 
 Which probes: all of the shelf's (``--near-deg 0``, the whole re-vote: ~11 000 at 3 m, hours of 2 cores), or
 those within ``--near-deg`` of the evaluated drops' attitudes. The vote at an attitude weighs probes by
@@ -18,14 +19,15 @@ within ``--near-deg`` (the fallback, the nearest entry that landed its own drop,
 candidates and the vote's σ and radius are the shipped library's: nothing here is chosen on the evaluated drops'
 outcomes. Checkpoints (``--out`` + ``.npz``) after every batch; ``--resume`` goes on from them.
 
-    python bench/landing_revote.py --design rubber-paw --timestep 0.5 --height 3 --seeds 0 1 --near-deg 3 \
+    python bench/landing_revote.py [--design cat] [--timestep MS] --height 3 --seeds 0 1 --near-deg 3 \
         --out /tmp/revote.json [--resume] [--workers N] [--json]
 
 ``--out`` is a votes file (`felis.learning.landing.library`, "Votes file"): the re-voted shelves' lands over the
-library ``--library`` names (a votes file given as ``--library`` adds its shelves: the shipped
-``learning/weights/landing_library_rubber-paw.json`` is ``--height 3 --near-deg 0 --out V3.json`` (73 min on 2
-cores) then ``--library V3.json --height 1 --near-deg 0 --out learning/weights/landing_library_rubber-paw.json``
-(13 min)), with each shelf's options and results under ``revoted``.
+library ``--library`` names (a votes file given as ``--library`` adds its shelves), with each shelf's options and
+results under ``revoted``. The shipped library's own vote was made as ``--library
+learning/weights/landing_library_4ms-paw.json --height 3 --near-deg 0 --out V3.json`` (73 min on 2 cores) then
+``--library V3.json --height 1 --near-deg 0 --out V.json`` (13 min), and written into ``landing_library.json``
+(then a file of its own, for the design ``rubber-paw``; the candidates ranked by the 4 ms-paw cat's vote).
 """
 
 from __future__ import annotations
@@ -104,8 +106,8 @@ def revote(lib: MotionLibrary, height_m: float, probes: np.ndarray, tries: list[
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--library", type=Path, default=DEFAULT_LIBRARY)
-    ap.add_argument("--design", default="rubber-paw")
-    ap.add_argument("--timestep", type=float, default=0.5, metavar="MS", help="physics step (ms)")
+    ap.add_argument("--design", default="cat")
+    ap.add_argument("--timestep", type=float, metavar="MS", help="physics step (ms; default the design's)")
     ap.add_argument("--height", type=float, default=3.0, help="the shelf (drop height, m)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="random:100 seeds evaluated")
     ap.add_argument("--near-deg", type=float, default=3.0, help="probes this close to an evaluated drop (0: all)")
@@ -123,6 +125,10 @@ def main() -> None:
     lib = load_library(args.library)
     shelf = lib.shelf(args.height)
     sigma = shelf.sigma_deg or lib.sigma_deg
+    if args.timestep is None:
+        from felis.learning.landing.designs import design_timestep
+
+        args.timestep = design_timestep(args.design) * 1000.0
     step = args.timestep / 1000.0
     drops = {s: random_drops(100, seed=s, heights=(args.height,)) for s in args.seeds}
     if args.near_deg > 0:

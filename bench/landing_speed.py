@@ -231,7 +231,7 @@ def batched_speed(task: lk.Task, jobs: list[tuple], repeats: int) -> dict:
     ticks = [task.steps] * len(jobs)
     sim = BatchLandingSim()
     batch = sim.batch
-    B, T, P = len(jobs), task.steps, 10
+    B, T, P = len(jobs), task.steps, int(round(1.0 / (lt.RATE_HZ * batch.model.opt.timestep)))  # steps per tick
     ctrl = np.zeros((B, T * P, batch.model.nu))
 
     def record(k, st, sd, active):

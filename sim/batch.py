@@ -58,7 +58,6 @@ from felis.sim.scenarios import apply_drop
 from felis.sim.servo import ServoParams, quantization_steps
 from felis.spec import RobotSpec
 
-PHYSICS_PER_TICK = 10  # 100 Hz control over 1 kHz physics
 PREFIX = "felis_verdict_"
 FLOOR = "floor"
 

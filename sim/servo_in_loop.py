@@ -10,8 +10,8 @@ limits are `felis.scenarios.drop`'s.
 
 Servo-in-the-loop (`virtual_bus` with ``sim=True``): the horn is the MuJoCo joint. A thread
 steps `felis.sim.robot.MujocoRobot` so that simulated time follows the wall clock (whole model
-timesteps, at most 20 per iteration; a longer lag is skipped, not caught up, and counted in
-``stats.sim_lag_s``). The servos boot with Goal Position at the model's initial pose. Each iteration
+timesteps, at most `MujocoBackend.MAX_LAG_S` = 20 ms of them per iteration; a longer lag is skipped, not caught
+up, and counted in ``stats.sim_lag_s``). The servos boot with Goal Position at the model's initial pose. Each iteration
 copies Goal Position (through the mounting, below), the Torque Enable mask (always the full mask) and
 Profile Velocity (``dq_max``, None when all are 0; a 0 among others is unlimited) into a
 `felis.hal.Command` when any servo's memory changed, and copies the quantised q, dq and effort back
@@ -162,7 +162,7 @@ class MujocoBackend:
     """Servo-in-the-loop: the servos' horns are the MuJoCo model's joints (module doc); a
     `felis.drivers.virtual.HornBackend`. ``robot`` is the `MujocoRobot`, ``drop_info`` the drop's placement."""
 
-    MAX_STEPS = 20
+    MAX_LAG_S = 0.02  # the most simulated time one iteration catches up (module doc)
 
     def __init__(self, bus: VirtualBus, *, servo_params: Mapping[str, object] | None = None,
                  fixed_base: bool = False, drop: Sequence[float] | None = None, lockstep: bool = False):
@@ -316,11 +316,11 @@ class MujocoBackend:
             if behind < dt:
                 self._stop.wait(dt - behind)
                 continue
-            n = int(behind / dt)
-            if n > self.MAX_STEPS:
-                self.bus.stats.sim_lag_s += (n - self.MAX_STEPS) * dt
-                t0 += (n - self.MAX_STEPS) * dt
-                n = self.MAX_STEPS
+            n, most = int(behind / dt), max(1, int(round(self.MAX_LAG_S / dt)))
+            if n > most:
+                self.bus.stats.sim_lag_s += (n - most) * dt
+                t0 += (n - most) * dt
+                n = most
             self._step(n)
 
     def _step(self, n: int) -> None:

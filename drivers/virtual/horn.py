@@ -82,7 +82,7 @@ from felis.servos import PWM_LIMIT, RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, TICKS
 
 CENTRE = CENTRE_TICK
 POSITION_LOOP_S = 1e-3  # assumed period of the firmware's position loop (module doc: not published)
-PHYSICS_DT = 1e-3  # the standalone horn's physics step (the robots' MJCF models use the same)
+PHYSICS_DT = 1e-3  # the standalone horn's physics step (the arm's MJCF model uses the same; the cat's, 0.5 ms)
 RAD_S2_PER_ACCEL_UNIT = 214.577 * 2.0 * math.pi / 3600.0  # Profile Acceleration unit, 214.577 rev/min²
 # Rough reflected rotor inertia (kg·m²) and gear friction (N·m) per model, refined by sysid.
 ARMATURE = {"XL330-M288-T": 5e-4, "XL430-W250-T": 5e-3, "XM430-W350-T": 1e-2}

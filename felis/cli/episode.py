@@ -125,7 +125,7 @@ def _check(ep: Episode) -> None:
     if not (ep.duration > 0 and ep.duration <= 3600):
         raise ParameterError(f"duration must be within 0…3600 s, got {ep.duration}")
     if ep.rate_hz is not None and not 1 <= ep.rate_hz <= 1000:
-        raise ParameterError(f"rate must be within 1…1000 Hz (physics runs at 1 kHz), got {ep.rate_hz:g}")
+        raise ParameterError(f"rate must be within 1…1000 Hz (a tick of at least 1 ms), got {ep.rate_hz:g}")
     from felis.sim.render import check_video_path
 
     if ep.video is not None:

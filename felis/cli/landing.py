@@ -141,7 +141,8 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--policy", metavar="library|shipped|passive|stand|rules|optimum|FILE",
                    help="what the cat does while it falls and lands: library (the shipped motion library: the "
                    "motion that lands most often near the attitude the IMU gives at release; the default; on a "
-                   "--design with its own vote, that one: rubber-paw's, taken at 0.5 ms), shipped "
+                   "--design with its own vote, that one: 4ms-paw's and the study's, taken on the 4 ms-paw cat), "
+                   "shipped "
                    "(the evolved nets), passive (hold the pose at release), stand (go to the stand pose), rules (the "
                    "hand-written spine rule of the nearest training orientation), optimum (the best open-loop "
                    "whole-body motion CMA-ES finds for each drop; slow; with --warm-start, searched from the library's "
@@ -175,7 +176,8 @@ def register_eval(eval_sub) -> None:
                    help="another buildable cat (servos, voltage, paws; docs/landing.md, the design study); "
                    "default cat, the described one")
     e.add_argument("--timestep", type=float, metavar="MS",
-                   help="the physics step in ms (default the model's, 1; it must divide the 10 ms control tick): "
+                   help="the physics step in ms (default the design's: the described cat's model 0.5, 4ms-paw and "
+                   "the study's designs 1; it must divide the 10 ms control tick): "
                    "whether a result holds as the impact is resolved more finely (docs/landing.md, the physics step)")
     e.add_argument("--seed", type=int, default=0, help="seed of random:N (default 0)")
     e.add_argument("--height", type=float, metavar="M", help="drop height for random:N (m, default 1.0)")
@@ -505,7 +507,7 @@ def _eval_optimum(args, drops) -> int:
     if warm == "library":
         from felis.learning.landing.library import DEFAULT_LIBRARY
 
-        warm = str(DEFAULT_LIBRARY)
+        warm = str(design_library(args.design) or DEFAULT_LIBRARY)  # the library as that cat votes it
     if args.checkpoint is not None:  # after the inputs' own faults (a bad --warm-start file is its own line)
         if warm is not None:
             from felis.learning.landing.library import load_library

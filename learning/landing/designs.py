@@ -9,17 +9,23 @@ A `Design` changes the described cat (`felis/robots/cat.toml`, `sim/models/cat.x
   layer's per-tick step and the optimum's joint speed) becomes its ω₀;
 * **supply voltage** V: a DC motor's stall torque and no-load speed both scale with V, so τ_s and ω₀ are the
   datasheet's figures times V / V_nominal (the XL330 and XC330 run on 3.7–6 V; `VOLTS_MAX`);
-* **paw contact**: the time constant τ of the feet's contact with the floor (`sim/models/cat.xml`: 4 ms; a paw
-  carrying a quarter of the cat is a spring of k ≈ (M/4)/τ², docs/landing.md; `paw_edit`). ``soft-rubber-paw``
-  (3 ms) is the contact that ``rubber-paw`` made before `paw_edit` gave the feet priority over the floor (MuJoCo
-  averaged its 2 ms with the floor's 4 ms): every "rubber paw" figure measured before 2026-11-28 is its, bit for
-  bit.
+* **paw contact**: the time constant τ of the feet's contact with the floor (`sim/models/cat.xml`: 2 ms, moulded
+  rubber; a paw carrying a quarter of the cat is a spring of k ≈ (M/4)/τ², docs/landing.md; `paw_edit`), and the
+  **physics step** the design is simulated at (`timestep_s`; the model's is 0.5 ms, which resolves the 2 ms
+  paw's impact: ≤ τ/4).
+
+``4ms-paw`` is the cat as described until 2026-11-29, bit for bit: 4 ms paws at a 1 ms step (every figure measured
+on "the described cat" before then is its); the study's other designs (``fast-limbs``, ``strong-spine``, ``6V``,
+``soft-rubber-paw``) change that cat, since the study was measured on it, and run the library with the vote taken
+on it (``landing_library_4ms-paw.json``). ``soft-rubber-paw`` (3 ms) is the contact the 2 ms paw made before
+`paw_edit` gave the feet priority over the floor (MuJoCo averaged its 2 ms with the floor's 4 ms): every "rubber
+paw" figure measured before 2026-11-28 is its, bit for bit.
 
 Masses stay the model's: an XC330 is 5 g heavier than an XL330 (23 g against 18 g), 1 % of the cat per
 servo, which the study ignores. `DESIGNS` holds the study's designs, `design_sim` builds the batch simulation
-of one (`felis.learning.landing.evaluate.BatchLandingSim`), `design_library` the motion library that
-``--policy library`` runs on it (the ``rubber-paw`` cat's: the shipped motions voted on it at 0.5 ms), and
-`joint_speeds` gives the per-joint speed the
+of one (`felis.learning.landing.evaluate.BatchLandingSim`), `design_timestep` the physics step it runs at,
+`design_library` the motion library that ``--policy library`` runs on it (the shipped motions with the vote taken
+on that cat), and `joint_speeds` gives the per-joint speed the
 optimum's motions run at (`felis.learning.landing.optimum.motion_table`).
 """
 
@@ -47,6 +53,7 @@ class Design:
     servos: dict[str, str] = field(default_factory=dict)  # group → servo model
     volts: float | None = None  # supply voltage for every servo (None: each model's nominal)
     paw_tau_s: float | None = None  # the feet's contact time constant (None: the model's)
+    timestep_s: float | None = None  # its physics step (None: the model's)
     library: str | None = None  # its own motion library (a votes file in learning/weights/): --policy library on it
 
     def check(self, spec: RobotSpec) -> None:
@@ -68,6 +75,8 @@ class Design:
                                          f"not {self.volts:g} V")
         if self.paw_tau_s is not None and not (math.isfinite(self.paw_tau_s) and 0.0005 <= self.paw_tau_s <= 0.1):
             raise ParameterError(f"design {self.name}: paw τ must be within 0.5–100 ms, got {self.paw_tau_s}")
+        if self.timestep_s is not None and not (math.isfinite(self.timestep_s) and 0 < self.timestep_s <= 0.01):
+            raise ParameterError(f"design {self.name}: a physics step must be within (0, 10] ms, got {self.timestep_s}")
 
     def model_of(self, joint: str, spec: RobotSpec) -> str:
         for group, model in self.servos.items():
@@ -76,17 +85,21 @@ class Design:
         return next(j.servo for j in spec.joints if j.name == joint)
 
 
+# The 4 ms-paw cat at 1 ms: the cat as described until 2026-11-29 and the base of the design study (measured on it).
+_OLD = {"paw_tau_s": 0.004, "timestep_s": 0.001, "library": "landing_library_4ms-paw.json"}
+
 DESIGNS: dict[str, Design] = {d.name: d for d in (
-    Design("cat", "as described: XL330-M288-T everywhere at 5 V, 4 ms paws"),
-    Design("fast-limbs", "XL330-M077-T on legs and tail (383 rpm, 0.215 N·m)",
-           servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T"}),
-    Design("strong-spine", "XC330-M181-T on the spine (129 rpm, 0.60 N·m)", servos={"spine": "XC330-M181-T"}),
-    Design("fast-limbs+strong-spine", "both of the above",
-           servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T", "spine": "XC330-M181-T"}),
-    Design("6V", "XL330-M288-T at its 6 V maximum (×1.2 speed and stall torque)", volts=6.0),
-    Design("rubber-paw", "moulded-rubber paws (Shore ≈ 50A), τ = 2 ms (k ≈ 61 kN/m)", paw_tau_s=0.002,
-           library="landing_library_rubber-paw.json"),
-    Design("soft-rubber-paw", "soft rubber paws (Shore ≈ 30A), τ = 3 ms (k ≈ 27 kN/m)", paw_tau_s=0.003),
+    Design("cat", "as described: XL330-M288-T everywhere at 5 V, moulded-rubber paws τ = 2 ms, 0.5 ms step"),
+    Design("4ms-paw", "the cat as described until 2026-11-29: 4 ms paws (k ≈ 15 kN/m), 1 ms step", **_OLD),
+    Design("fast-limbs", "4ms-paw with XL330-M077-T on legs and tail (383 rpm, 0.215 N·m)",
+           servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T"}, **_OLD),
+    Design("strong-spine", "4ms-paw with XC330-M181-T on the spine (129 rpm, 0.60 N·m)",
+           servos={"spine": "XC330-M181-T"}, **_OLD),
+    Design("fast-limbs+strong-spine", "4ms-paw with both of the above",
+           servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T", "spine": "XC330-M181-T"}, **_OLD),
+    Design("6V", "4ms-paw with XL330-M288-T at its 6 V maximum (×1.2 speed and stall torque)", volts=6.0, **_OLD),
+    Design("soft-rubber-paw", "4ms-paw with soft rubber paws (Shore ≈ 30A), τ = 3 ms (k ≈ 27 kN/m)",
+           **{**_OLD, "paw_tau_s": 0.003}),
 )}
 
 
@@ -95,6 +108,16 @@ def get_design(name: str) -> Design:
         return DESIGNS[name]
     except KeyError:
         raise ParameterError(f"unknown design {name!r}; designs: {', '.join(DESIGNS)}") from None
+
+
+def design_timestep(design: Design | str) -> float:
+    """The physics step ``design`` runs at (s): its own, else the described cat's model's."""
+    d = get_design(design) if isinstance(design, str) else design
+    if d.timestep_s is not None:
+        return d.timestep_s
+    from felis.sim.robot import load_model, model_path
+
+    return float(load_model(model_path(load_spec("cat"))).opt.timestep)
 
 
 def design_library(name: str):
@@ -151,12 +174,13 @@ def paw_edit(tau: float) -> Callable:
 
 def design_sim(design: Design | str, *, nthread: int | None = None, timestep: float | None = None):
     """`BatchLandingSim` of ``design`` (a `Design` or a name in `DESIGNS`); ``timestep``: its physics step (s;
-    default the model's)."""
+    default the design's, else the model's)."""
     from felis.learning.landing.evaluate import BatchLandingSim
 
     d = get_design(design) if isinstance(design, str) else design
     spec, servo, edit = design_robot(d)
-    return BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=edit, timestep=timestep)
+    return BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=edit,
+                           timestep=d.timestep_s if timestep is None else timestep)
 
 
 def joint_speeds(spec: RobotSpec) -> float | np.ndarray:

@@ -185,13 +185,25 @@ class LandingSim:
     """A reusable simulated cat for drop episodes (one compiled model, reset between drops); measures the
     standing waist height once at construction."""
 
-    def __init__(self, robot: str = "cat"):
+    def __init__(self, robot: str = "cat", design: str | None = None):
+        """``design``: a cat of `felis.learning.landing.designs.DESIGNS` instead of the described one (its servos,
+        paws and physics step), e.g. ``4ms-paw`` to replay what was recorded on the cat as described until
+        2026-11-29."""
         self.spec = load_spec(robot)
+        servo = edit = step = None
+        if design is not None:
+            from felis.learning.landing.designs import design_robot, get_design
+
+            d = get_design(design)
+            self.spec, servo, edit = design_robot(d, self.spec)
+            step = d.timestep_s
         self.feet = tuple(self.spec.sensors.contacts)
         if not self.feet:
             raise ParameterError(f"{self.spec.name} has no foot contacts (sensors.contacts): it cannot be judged")
-        self.robot = MujocoRobot(self.spec)
+        self.robot = MujocoRobot(self.spec, servo=servo, edit=edit)
         self.robot.connect()
+        if step is not None:
+            self.robot.model.opt.timestep = step
         self.standing_waist_m = standing_waist_height(self.robot)
 
     def run(self, d: Drop, policy: str | Controller = "passive", monitors=(), duration: float | None = None

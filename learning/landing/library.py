@@ -378,7 +378,8 @@ def _with_votes(doc: dict, path: Path) -> MotionLibrary:
                 raise ParameterError(f"shelf {k} ({h:g} m), probe {p}: lands must be candidate ids 0…{n_cand - 1}")
             new[p, ids] = True
         shelf.lands = new
-    lib.meta = {**lib.meta, "votes_of": of, **({"revoted": doc["revoted"]} if "revoted" in doc else {})}
+    base_meta = {k: v for k, v in lib.meta.items() if k != "revoted"}  # the library's own vote is not this one
+    lib.meta = {**base_meta, "votes_of": of, **({"revoted": doc["revoted"]} if "revoted" in doc else {})}
     return lib
 
 

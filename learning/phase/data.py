@@ -139,7 +139,7 @@ def record_sim(segments: Sequence[tuple[float, float, float]], name: str = "sim"
     from felis.spec import load_spec
 
     if not (isinstance(rate_hz, int | float) and 1.0 <= rate_hz <= 1000.0):
-        raise PhaseError(f"record rate must be within 1…1000 Hz (physics runs at 1 kHz), got {rate_hz!r}")
+        raise PhaseError(f"record rate must be within 1…1000 Hz (a tick of at least 1 ms), got {rate_hz!r}")
     controller = SteppingController.scheduled(check_segments(segments))
     spec = load_spec("cat")
     rows: list[tuple] = []

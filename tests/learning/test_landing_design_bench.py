@@ -15,20 +15,21 @@ def _bench(*argv: str) -> subprocess.CompletedProcess:
 
 def test_design_bench_writes_each_drop_and_resumes(tmp_path):
     out = tmp_path / "jobs.jsonl"
-    r = _bench("--drops", "1", "--designs", "6V,cat", "--heights", "1", "--workers", "2", "--out", str(out), "--json")
+    r = _bench("--drops", "1", "--designs", "6V,4ms-paw", "--heights", "1", "--workers", "2", "--out", str(out),
+               "--json")
     assert r.returncode == 0, r.stderr
     table = json.loads(r.stdout)
-    assert list(table["designs"]) == ["cat", "6V"]  # the anchor first
+    assert list(table["designs"]) == ["4ms-paw", "6V"]  # the anchor first
     rows = [json.loads(x) for x in out.read_text().splitlines()]
-    assert sorted((x["design"], x["height"], x["i"]) for x in rows) == [("6V", "1m", 0), ("cat", "1m", 0)]
-    cat = next(x for x in rows if x["design"] == "cat")
-    shipped = json.loads((BENCH.parents[1] / "learning" / "weights" / "landing_optimum-1m.json").read_text())
+    assert sorted((x["design"], x["height"], x["i"]) for x in rows) == [("4ms-paw", "1m", 0), ("6V", "1m", 0)]
+    cat = next(x for x in rows if x["design"] == "4ms-paw")
+    shipped = json.loads((BENCH.parents[1] / "learning" / "weights" / "landing_optimum_4ms-paw-1m.json").read_text())
     assert cat["landed"] == shipped["drops"][0]["landed"]  # the anchor: the shipped search, drop by drop
-    assert table["designs"]["cat"]["1m"] == {"landed": int(cat["landed"]), "of": 1}
-    again = _bench("--drops", "1", "--designs", "6V,cat", "--heights", "1", "--out", str(out), "--resume")
+    assert table["designs"]["4ms-paw"]["1m"] == {"landed": int(cat["landed"]), "of": 1}
+    again = _bench("--drops", "1", "--designs", "6V,4ms-paw", "--heights", "1", "--out", str(out), "--resume")
     assert again.returncode == 0, again.stderr
     assert "drop 0:" not in again.stderr  # nothing searched again
-    assert "6V" in again.stdout and "(shipped results, cat)" in again.stdout
+    assert "6V" in again.stdout and "(shipped results, 4ms-paw)" in again.stdout
     assert len(out.read_text().splitlines()) == 2
     bad = _bench("--designs", "cat-x")
     assert bad.returncode != 0 and "unknown design 'cat-x'" in bad.stderr

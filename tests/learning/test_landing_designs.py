@@ -60,26 +60,28 @@ def test_fast_limbs_puts_the_m077_on_legs_and_tail():
         sim.close()
 
 
-def test_six_volts_scales_speed_and_stall_torque_and_rubber_paws_change_only_the_feet_contact():
+def test_six_volts_scales_speed_and_stall_torque_and_other_paws_change_only_the_feet_contact_and_the_step():
     spec, servo, _ = design_robot(DESIGNS["6V"])
     m = SERVOS["XL330-M288-T"]
     assert np.allclose(spec.max_velocity, m.no_load_speed * 1.2)
     assert all(p.torque_limit == pytest.approx(m.stall_torque * 1.2) for p in servo.values())
-    paw, base, soft = design_sim("rubber-paw", nthread=1), design_sim("cat", nthread=1), design_sim(
+    paw, base, soft = design_sim("4ms-paw", nthread=1), design_sim("cat", nthread=1), design_sim(
         "soft-rubber-paw", nthread=1)
     try:
         mp, mb = paw.batch.model, base.batch.model
         for g in range(mb.ngeom):
             name = mujoco.mj_id2name(mb, mujoco.mjtObj.mjOBJ_GEOM, g) or ""
-            want = [0.002, 1.0] if name.endswith("_foot") else list(mb.geom_solref[g])
+            want = [0.004, 1.0] if name.endswith("_foot") else list(mb.geom_solref[g])
             assert list(mp.geom_solref[g]) == pytest.approx(want), name
         assert sum((mujoco.mj_id2name(mb, mujoco.mjtObj.mjOBJ_GEOM, g) or "").endswith("_foot")
                    for g in range(mb.ngeom)) == 4
+        # the described cat's step resolves its 2 ms paw (τ/4); the study's base runs at the 1 ms it was measured at
+        assert (mb.opt.timestep, mp.opt.timestep, soft.batch.model.opt.timestep) == (0.0005, 0.001, 0.001)
         # the contact the solver uses: the feet's τ as it is (equal priorities would average it with the floor's
-        # 4 ms: 3 ms), the floor's friction and solimp unchanged
-        for m, tau in ((mp, 0.002), (mb, 0.004), (soft.batch.model, 0.003)):
+        # 4 ms), the floor's friction and solimp unchanged
+        for m, tau in ((mp, 0.004), (mb, 0.002), (soft.batch.model, 0.003)):
             d = mujoco.MjData(m)
-            for _ in range(300):  # the cat settles onto its four feet
+            for _ in range(int(round(0.3 / m.opt.timestep))):  # the cat settles onto its four feet
                 mujoco.mj_step(m, d)
             feet = [c for c in d.contact[:d.ncon] if m.geom(c.geom2).name.endswith("_foot")]
             assert len(feet) == 4
@@ -113,12 +115,13 @@ def test_per_joint_speeds_make_each_joint_reach_its_waypoint_at_its_own_speed():
     (Design("x", "", servos={"legs": "XD430-T210-R"}), "no datasheet figures"),
     (Design("x", "", volts=7.5), "runs on 3.7–6 V, not 7.5 V"),
     (Design("x", "", paw_tau_s=0.0), "paw τ must be within"),
+    (Design("x", "", timestep_s=0.0), "a physics step must be within"),
 ])
 def test_bad_designs_are_one_line(design, message):
     with pytest.raises(ParameterError, match=message) as e:
         design_robot(design)
     assert "\n" not in str(e.value)
-    with pytest.raises(ParameterError, match="unknown design 'cat-x'; designs: cat, fast-limbs"):
+    with pytest.raises(ParameterError, match="unknown design 'cat-x'; designs: cat, 4ms-paw, fast-limbs"):
         get_design("cat-x")
 
 
@@ -127,7 +130,7 @@ def test_cli_design_is_checked_and_reported(tmp_path):
     drops.write_text(json.dumps([{"roll_deg": 0, "pitch_deg": 0, "yaw_deg": 0, "height_m": 0.3}]))
     bad = subprocess.run([sys.executable, "-m", "felis", "eval", "landing", "--drops", str(drops), "--design", "nope"],
                          capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "invalid choice: 'nope'" in bad.stderr and "rubber-paw" in bad.stderr
+    assert bad.returncode == 2 and "invalid choice: 'nope'" in bad.stderr and "4ms-paw" in bad.stderr
     ok = subprocess.run([sys.executable, "-m", "felis", "eval", "landing", "--drops", str(drops), "--design", "6V",
                          "--policy", "stand", "--json"], capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0, ok.stderr

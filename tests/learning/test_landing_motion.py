@@ -152,10 +152,10 @@ def test_optimum_warm_start_through_the_command(tmp_path):
     again = _felis(*base, "--warm-start", str(lib), "--resume")
     assert again.returncode != 0 and "other drops or settings" in again.stderr, again.stderr
     # another design's search starts from the described cat's motions too, each judged on that design's cat
-    other = _felis(*base[:-1], str(tmp_path / "ck2"), "--warm-start", str(lib), "--design", "rubber-paw")
+    other = _felis(*base[:-1], str(tmp_path / "ck2"), "--warm-start", str(lib), "--design", "4ms-paw")
     assert other.returncode == 0, other.stderr
     res = json.loads(other.stdout)
-    assert res["design"] == "rubber-paw" and res["search"]["warm_start"] == str(lib) and res["total"] == 1
+    assert res["design"] == "4ms-paw" and res["search"]["warm_start"] == str(lib) and res["total"] == 1
     for argv, says in (((*base[:2], "--policy", "library", *base[4:6], "--warm-start"),
                         "--warm-start starts the optimum's search"),
                        ((*base, "--warm-start", str(tmp_path / "none.json")), "none.json")):
@@ -193,7 +193,7 @@ def test_a_long_run_refuses_to_overwrite_an_earlier_runs_checkpoints_without_res
 
 def test_a_finer_physics_step_through_the_command(tmp_path):
     """`felis eval landing --timestep MS`: the drops run at that physics step (equal to `run_drops(timestep=)`, and
-    not to the model's 1 ms: the impact is resolved differently), the result says so; the optimum searches at it and
+    not to the model's 0.5 ms: the impact is resolved differently), the result says so; the optimum searches at it and
     its checkpoint carries it, so a search at another step is not resumed; a step that does not divide the 10 ms
     tick, or with --live, is one line."""
     from felis.learning.landing.evaluate import run_drops
@@ -202,22 +202,22 @@ def test_a_finer_physics_step_through_the_command(tmp_path):
     drops = random_drops(2, seed=3, heights=3.0)
     base = ("eval", "landing", "--drops", "random:2", "--seed", "3", "--height", "3", "--policy", "passive",
             "--json", "--workers", "1")
-    r = _felis(*base, "--timestep", "0.5")
+    r = _felis(*base, "--timestep", "0.25")
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
-    assert res["timestep_ms"] == 0.5 and "timestep_ms" not in json.loads(_felis(*base).stdout)
-    fine = run_drops(drops, "passive", workers=1, timestep=0.0005)  # the JSON rounds to 2 decimals
+    assert res["timestep_ms"] == 0.25 and "timestep_ms" not in json.loads(_felis(*base).stdout)
+    fine = run_drops(drops, "passive", workers=1, timestep=0.00025)  # the JSON rounds to 2 decimals
     assert [o["peak_impact"] for o in res["drops"]] == pytest.approx([o.peak_impact for o in fine], abs=0.006)
     coarse = run_drops(drops, "passive", workers=1)
     assert all(abs(a.peak_impact - b.peak_impact) > 0.1 for a, b in zip(fine, coarse, strict=True))
     ck = tmp_path / "ck"
     opt = ("eval", "landing", "--policy", "optimum", "--drops", "random:1", "--height", "1", "--generations", "0",
            "--json", "--workers", "1", "--checkpoint", str(ck))
-    r = _felis(*opt, "--timestep", "0.5")
+    r = _felis(*opt, "--timestep", "0.25")
     assert r.returncode == 0, r.stderr
-    assert json.loads(r.stdout)["timestep_ms"] == 0.5
-    assert json.loads((ck / "optimum.jsonl").read_text().splitlines()[0])["settings"]["timestep_ms"] == 0.5
-    again = _felis(*opt, "--timestep", "0.25", "--resume")
+    assert json.loads(r.stdout)["timestep_ms"] == 0.25
+    assert json.loads((ck / "optimum.jsonl").read_text().splitlines()[0])["settings"]["timestep_ms"] == 0.25
+    again = _felis(*opt, "--timestep", "0.125", "--resume")
     assert again.returncode != 0 and "other drops or settings" in again.stderr, again.stderr
     for argv, says in (((*base, "--timestep", "0.3"), "must divide the 10 ms control tick, got 0.3 ms"),
                        ((*opt, "--timestep", "0"), "must divide the 10 ms control tick"),

@@ -134,9 +134,17 @@ def test_shipped_samples_load():
         assert s.rule.segments
 
 
-def test_replaying_a_stored_rule_reproduces_it(sim):
+def test_replaying_a_stored_rule_reproduces_it():
+    """The shipped samples were recorded on the cat as described until 2026-11-29 (`4ms-paw`): on it they replay."""
+    from felis.learning.landing.evaluate import LandingSim
+
     s = load_samples(SHIPPED)[1]
-    r = rollout(sim, s.orientation, s.rule, s.height_m)
+    sim = LandingSim(design="4ms-paw")
+    try:
+        assert sim.robot.model.opt.timestep == 0.001
+        r = rollout(sim, s.orientation, s.rule, s.height_m)
+    finally:
+        sim.close()
     assert r.final_up_z == pytest.approx(s.final_up_z, abs=1e-3)
     assert r.landed == s.landed
     assert np.allclose(r.heights_mm[:60], s.heights_mm[:60], atol=1e-3)  # the fall, before any contact
