@@ -1,9 +1,10 @@
 """Benchmark: a 2 s cat episode through felis against a bare ``mj_step`` loop on the same model.
 
-Episode: the cat released upside-down 1 m above the floor, 2 s at 1 kHz physics. felis runs it
+Episode: the cat released upside-down 1 m above the floor, 2 s at the model's physics rate (2 kHz since
+2026-11-29, 1 kHz before). felis runs it
 through the whole stack at 100 Hz (MujocoRobot read/write with servo quantisation, the stand
 PoseController, the safety layer, the loop and its timing); the anchor is the loop a MuJoCo user
-would write by hand on the same compiled model and initial state: set ``ctrl`` every 10 steps and
+would write by hand on the same compiled model and initial state: set ``ctrl`` every tick's steps and
 call ``mj_step`` once per physics step. Each timed batch of felis is put between two of the anchor
 (bare, felis, bare, …), and its ratio is the anchor's mean time of the two over its own: the machines this
 runs on (shared 2-core VMs) change speed by ±30 % from one second to the next, and a ratio against the

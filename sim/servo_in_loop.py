@@ -10,8 +10,9 @@ limits are `felis.scenarios.drop`'s.
 
 Servo-in-the-loop (`virtual_bus` with ``sim=True``): the horn is the MuJoCo joint. A thread
 steps `felis.sim.robot.MujocoRobot` so that simulated time follows the wall clock (whole model
-timesteps, at most `MujocoBackend.MAX_LAG_S` = 20 ms of them per iteration; a longer lag is skipped, not caught
-up, and counted in ``stats.sim_lag_s``). The servos boot with Goal Position at the model's initial pose. Each iteration
+timesteps, woken every `MujocoBackend.POLL_S` = 1 ms or model step, whichever is longer, and at most
+`MujocoBackend.MAX_LAG_S` = 20 ms of them per iteration; a longer lag is skipped, not caught up, and counted in
+``stats.sim_lag_s``). The servos boot with Goal Position at the model's initial pose. Each iteration
 copies Goal Position (through the mounting, below), the Torque Enable mask (always the full mask) and
 Profile Velocity (``dq_max``, None when all are 0; a 0 among others is unlimited) into a
 `felis.hal.Command` when any servo's memory changed, and copies the quantised q, dq and effort back
@@ -163,6 +164,7 @@ class MujocoBackend:
     `felis.drivers.virtual.HornBackend`. ``robot`` is the `MujocoRobot`, ``drop_info`` the drop's placement."""
 
     MAX_LAG_S = 0.02  # the most simulated time one iteration catches up (module doc)
+    POLL_S = 0.001  # the thread's shortest wait: simulated time follows the wall clock to within this
 
     def __init__(self, bus: VirtualBus, *, servo_params: Mapping[str, object] | None = None,
                  fixed_base: bool = False, drop: Sequence[float] | None = None, lockstep: bool = False):
@@ -302,6 +304,9 @@ class MujocoBackend:
 
     def _run(self) -> None:
         dt, lock = self.dt, self.bus.lock
+        # the thread wakes at most every `POLL_S` (whole steps of dt each time): a 0.5 ms model woken every step
+        # takes the interpreter from the bus server twice as often as a 1 ms one, for the same physics
+        poll = max(dt, self.POLL_S)
         # The operator holds the robot in its start pose until torque first comes on: physics waits, so
         # a run through the bus starts from the same state as the same run on MuJoCo directly.
         while not self._stop.is_set():
@@ -309,12 +314,12 @@ class MujocoBackend:
                 if any(s.torque_enabled for s in self.servos):
                     self._held = False
                     break
-            self._stop.wait(dt)
+            self._stop.wait(poll)
         t0 = time.perf_counter()
         while not self._stop.is_set():
             behind = time.perf_counter() - t0 - self.sim_t
-            if behind < dt:
-                self._stop.wait(dt - behind)
+            if behind < poll:
+                self._stop.wait(poll - behind)
                 continue
             n, most = int(behind / dt), max(1, int(round(self.MAX_LAG_S / dt)))
             if n > most:

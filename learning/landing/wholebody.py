@@ -25,10 +25,11 @@ target orientation in turn (default the paper's `TRAINING_ORIENTATIONS`) the sam
 whose start up-axis is nearest the target's (each used once), dropped from its own attitude and recorded; so
 the samples keep the targets' order and indices (orientation 1 and 4 of experiment 1 are samples 0 and 3) and
 every one of them lands. ``felis train landing --samples LIBRARY.json`` makes them on the fly (seven 2 s
-rollouts); the shipped file::
+rollouts, on the described cat); the shipped file, made on the cat as described until 2026-11-29 (the design
+``4ms-paw``; ``design=`` picks and records on another cat)::
 
     python -c "from felis.learning.landing.wholebody import make_library_samples; \\
-    make_library_samples('learning/weights/landing_samples_library.json')"
+    make_library_samples('learning/weights/landing_samples_library.json', design='4ms-paw')"
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ DEFAULT_PATH = Path(__file__).parents[1] / "weights" / "landing_samples_wholebod
 COMMAND = ("python -c \"from felis.learning.landing.wholebody import make_wholebody_samples; "
            "make_wholebody_samples('learning/weights/landing_samples_wholebody.json')\"")
 LIBRARY_COMMAND = ("python -c \"from felis.learning.landing.wholebody import make_library_samples; "
-                   "make_library_samples('learning/weights/landing_samples_library.json')\"")
+                   "make_library_samples('learning/weights/landing_samples_library.json'{})\"")  # {}: the design
 
 
 def sphere_orientations(n: int = N_ORIENTATIONS) -> list[tuple[float, float, float]]:
@@ -142,7 +143,7 @@ def _up(o) -> np.ndarray:
     return up_axis(math.radians(float(o[0])), math.radians(float(o[1])))
 
 
-def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None) -> list[dict]:
+def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, design: str | None = None) -> list[dict]:
     """For each target (roll, pitch, yaw °; default `TRAINING_ORIENTATIONS`), the library candidate (an entry of
     the shelf for ``height_m``, or its mirror image) that starts nearest the target by up-axis and lands its own
     attitude, each used once (module doc): ``{"target", "orientation", "x", "entry", "mirrored", "angle_deg"}``.
@@ -163,7 +164,12 @@ def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None) -> li
     if not shelf.drops:
         raise ParameterError(f"motion library: the {height_m:g} m shelf does not record its entries' drops")
     cand_up, cand_x, _ = shelf.candidates()
-    sim = BatchLandingSim()
+    if design is None:
+        sim = BatchLandingSim()
+    else:
+        from felis.learning.landing.designs import design_sim
+
+        sim = design_sim(design)
     used: set[int] = set()
     out: list[dict] = []
     try:
@@ -190,14 +196,15 @@ def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None) -> li
     return out
 
 
-def library_samples(library, height_m: float = TRAIN_HEIGHT_M, targets=None
+def library_samples(library, height_m: float = TRAIN_HEIGHT_M, targets=None, design: str | None = None
                     ) -> tuple[list[Sample], list[dict]]:
     """(the samples, their picks) of `library_picks`, each dropped from its own attitude and recorded for `STEPS`
-    ticks (`felis.learning.landing.samples.rollout`)."""
+    ticks (`felis.learning.landing.samples.rollout`); ``design``: on that cat of
+    `felis.learning.landing.designs.DESIGNS` (default the described one)."""
     from felis.learning.landing.evaluate import LandingSim
 
-    picks = library_picks(library, height_m, targets)
-    sim = LandingSim()
+    picks = library_picks(library, height_m, targets, design)
+    sim = LandingSim(design=design)
     samples = []
     try:
         for p in picks:
@@ -212,16 +219,16 @@ def library_samples(library, height_m: float = TRAIN_HEIGHT_M, targets=None
 
 
 def make_library_samples(out_json: str | Path, library: str | Path | None = None, height_m: float = TRAIN_HEIGHT_M,
-                         progress: Callable[[str], None] | None = None) -> list[Sample]:
-    """`library_samples` for the paper's 7 orientations, written as a samples file (.json and .npz,
-    `load_samples`'s format)."""
+                         progress: Callable[[str], None] | None = None, design: str | None = None) -> list[Sample]:
+    """`library_samples` for the paper's 7 orientations (on ``design``'s cat, default the described one), written
+    as a samples file (.json and .npz, `load_samples`'s format)."""
     from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
 
     out_json = Path(out_json)
     library = Path(library or DEFAULT_LIBRARY)
     lib = load_library(library)
     t0 = time.perf_counter()
-    samples, picks = library_samples(lib, height_m)
+    samples, picks = library_samples(lib, height_m, design=design)
     entries = []
     for s, p in zip(samples, picks, strict=True):
         r = p["rollout"]
@@ -233,7 +240,9 @@ def make_library_samples(out_json: str | Path, library: str | Path | None = None
         if progress:
             progress(f"{p['target']} -> {s.orientation} ({p['angle_deg']:.1f}° away): landed {s.landed}")
     npz = out_json.with_suffix(".npz")
-    doc = {"format": FORMAT, "version": VERSION, "kind": "whole-body", "command": LIBRARY_COMMAND,
+    doc = {"format": FORMAT, "version": VERSION, "kind": "whole-body",
+           "command": LIBRARY_COMMAND.format("" if design is None else f", design='{design}'"),
+           **({} if design is None else {"design": design}),
            "source": f"the motion library {library.name}: per target the landing motion nearest by up-axis "
            "(learning/landing/wholebody.py, library_samples)", "library_made_by": lib.meta.get("made_by", ""),
            "train_height_m": float(height_m), "steps": STEPS, "dt": DT, "arrays": npz.name,

@@ -19,8 +19,9 @@ def _bench(*argv: str) -> subprocess.CompletedProcess:
 @pytest.mark.slow
 def test_late_starts_land_no_more_than_on_time_and_on_time_is_felis_eval(tmp_path):
     """The demo's hard drop lands at every delay up to 4 ticks (what `felis.cli.demo.HARD_DROP` was chosen for);
-    the earlier (141, 8) lands on time and 2 ticks late, not 4 (docs/landing.md); on time, the count is `felis eval
-    landing`'s on the same drops; a longer delay never lands more."""
+    so does, on the described cat's rubber paws, the earlier (141, 8), which on the 4 ms-paw cat landed on time and
+    2 ticks late but not 4 (docs/landing.md); on time, the count is `felis eval landing`'s on the same drops; a
+    longer delay never lands more."""
     from felis.cli.demo import HARD_DROP
 
     h, roll, pitch, yaw = HARD_DROP
@@ -33,7 +34,7 @@ def test_late_starts_land_no_more_than_on_time_and_on_time_is_felis_eval(tmp_pat
         (row,) = json.loads(r.stdout)["rows"]
         counts.append(row["landed_by_delay"])
     assert counts[0] == [1, 1, 1, 1, 1]
-    assert counts[1][0] == counts[1][2] == 1 and counts[1][4] == 0
+    assert counts[1] == [1, 1, 1, 1, 1]
     drops = tmp_path / "drops.json"
     drops.write_text(json.dumps([{"roll_deg": r_, "pitch_deg": p, "yaw_deg": 0, "height_m": 3.0}
                                  for r_, p in ((141, 8), (150, -4), (130, 4), (100, 20), (60, -30), (175, 24))]))

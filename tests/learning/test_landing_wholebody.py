@@ -48,20 +48,23 @@ def test_make_and_load_wholebody_samples(tmp_path):
 # slow (16 s): the §6.6 study's samples taken from the library (a bench's input)
 @pytest.mark.slow
 def test_library_samples_are_landing_motions_nearest_the_papers_orientations_in_order(tmp_path):
-    """`make_library_samples` on the shipped library: 7 samples in the paper's order, each a motion that lands
-    its own start, each the nearest such start to its orientation by up-axis among those not taken before it; the
-    file reads back as samples, is the shipped one (made by the command it records), and `felis train landing
-    --samples LIBRARY` trains on the same motions."""
+    """`make_library_samples` on the shipped library, on the cat the shipped samples were made on (``4ms-paw``, the
+    cat as described until 2026-11-29): 7 samples in the paper's order, each a motion that lands its own start, each
+    the nearest such start to its orientation by up-axis among those not taken before it; the file reads back as
+    samples, is the shipped one (made by the command it records); `felis train landing --samples LIBRARY` trains on
+    the motions `library_picks` picks on the described cat."""
     from felis.learning.landing.config import TrainConfig
+    from felis.learning.landing.designs import design_sim
     from felis.learning.landing.library import DEFAULT_LIBRARY, angles_deg, load_library
     from felis.learning.landing.samples import TRAINING_ORIENTATIONS
     from felis.learning.landing.task import load_task_samples
-    from felis.learning.landing.wholebody import LIBRARY_COMMAND, _up, make_library_samples
+    from felis.learning.landing.wholebody import LIBRARY_COMMAND, _up, library_picks, make_library_samples
 
     out = tmp_path / "lib_samples.json"
-    made = make_library_samples(out)
+    made = make_library_samples(out, design="4ms-paw")
     doc = json.loads(out.read_text())
-    assert len(made) == 7 and all(s.landed for s in made) and doc["command"] == LIBRARY_COMMAND
+    assert len(made) == 7 and all(s.landed for s in made) and doc["design"] == "4ms-paw"
+    assert doc["command"] == LIBRARY_COMMAND.format(", design='4ms-paw'")
     got = load_samples(out)
     for s, g, e, t in zip(made, got, doc["samples"], TRAINING_ORIENTATIONS, strict=True):
         assert tuple(e["stands_in_for"]) == t and g.orientation == s.orientation and g.landed
@@ -71,7 +74,6 @@ def test_library_samples_are_landing_motions_nearest_the_papers_orientations_in_
     # the stand-in with the most candidates starting nearer its orientation (not taken before it): none of those
     # lands its own start (with the shelf extended to 150°, six stand-ins are 2–4° away and have none; the rule
     # itself is checked on a planted motion in the next test)
-    from felis.learning.landing.evaluate import BatchLandingSim
     from felis.learning.landing.optimum import evaluate
     from felis.scenarios.drop import Drop
 
@@ -89,7 +91,7 @@ def test_library_samples_are_landing_motions_nearest_the_papers_orientations_in_
         d = shelf.drops[c // 2]
         sign = -1.0 if c & 1 else 1.0
         drops.append(Drop(sign * d["roll_deg"], d["pitch_deg"], sign * d["yaw_deg"], 3.0))
-    sim = BatchLandingSim(nthread=1)
+    sim = design_sim("4ms-paw", nthread=1)
     try:
         assert not any(v.landed for _, v in evaluate(sim, drops, cand_x[most])) if most else True
     finally:
@@ -98,7 +100,8 @@ def test_library_samples_are_landing_motions_nearest_the_papers_orientations_in_
     assert [s.orientation for s in shipped] == [s.orientation for s in made]
     assert all(np.allclose(a.rule.x, b.rule.x, atol=1e-6) for a, b in zip(shipped, made, strict=True))
     task = load_task_samples(TrainConfig(samples=str(DEFAULT_LIBRARY)), None)
-    assert [s.orientation for s in task] == [s.orientation for s in made]
+    assert [s.orientation for s in task] == [p["orientation"] for p in library_picks(DEFAULT_LIBRARY, 3.0)]
+    assert len(task) == 7 and all(s.landed for s in task)
 
 
 def test_a_library_pick_passes_over_a_motion_that_does_not_land_its_start_whatever_its_flag_says():
