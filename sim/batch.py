@@ -111,8 +111,8 @@ class DropBatch:
         nthread: threads, the caller's included (default: every core).
         safety: the safety layer's configuration (`felis.loop.run_loop`'s default when None).
         sensors: an `MjSpec` edit adding more sensors for ``record`` (e.g. the landing features' body points).
-        timestep: the physics step in s (default the model's, 1 ms): each control tick runs as many steps as
-            fit (a whole number; `bench/landing_height.py`: from 3 m the impact's verdict depends on the
+        timestep: the physics step in s (default the model's, 0.5 ms for the cat): each control tick runs as many
+            steps as fit (a whole number; `bench/landing_height.py`: from 3 m the impact's verdict depends on the
             step's phase at the first contact, and a finer step shows by how much).
     """
 
@@ -230,8 +230,8 @@ class DropBatch:
         ``controller``: ``reset(t (B,), q (B, n))`` then, each tick, ``controller(t, q, quat, h) -> (B, n)``
         position targets (q in encoder ticks, quat (w, x, y, z) from the IMU, h the waist height). Each cat
         runs ``round((fall_time + margin_s) · rate_hz)`` ticks (as `LandingSim`) unless ``ticks`` gives them.
-        ``record(k, states (B, S, nstate), sensordata (B, S, nsens), active)`` (S: physics steps a tick, 10 at the
-        model's 1 ms; FULLPHYSICS states): called after each tick's physics with the rows of the cats still
+        ``record(k, states (B, S, nstate), sensordata (B, S, nsens), active)`` (S: physics steps a tick, 20 at the
+        cat's 0.5 ms; FULLPHYSICS states): called after each tick's physics with the rows of the cats still
         running (``active``: their indices), e.g. to record motion."""
         per = int(round(1.0 / (rate_hz * self.model.opt.timestep)))
         if per < 1 or abs(rate_hz * self.model.opt.timestep * per - 1.0) > 1e-9:

@@ -2,7 +2,7 @@
 verdict is taken on.
 
 `ImpactRecorder` and `LandingRecorder` are physics sub-step hooks (``MujocoRobot.substep_hook``) so they
-measure at the physics rate (1 kHz), not the control rate: impacts last a few milliseconds.
+measure at the physics rate (2 kHz for the cat), not the control rate: impacts last a few milliseconds.
 Ground force = Σ normal forces of the contacts between the floor and the robot. `LandingRecorder` records,
 each step, what `felis.scenarios.verdicts.landing_verdict` judges (`LandingTruth`), and runs an
 `ImpactRecorder` in the same hook (the robot holds one hook).

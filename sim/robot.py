@@ -1,6 +1,6 @@
 """`MujocoRobot`: the HAL's `Robot` on a MuJoCo model.
 
-Physics runs at the model's timestep (1 kHz in the shipped models); ``advance(dt)`` steps
+Physics runs at the model's timestep (2 kHz for the cat, 1 kHz for the arm); ``advance(dt)`` steps
 ``round(dt / timestep)`` times in one native call. Each actuated joint of the description is a
 position actuator of the same name in the MJCF (its P term and D gain); the rest of the servo's firmware
 controller (`felis.sim.servo.controller`: the description's operating mode and gains) is added at load

@@ -128,6 +128,9 @@ def register_train(train_sub) -> None:
                    help="--add-probes, --extend: try the motions within this angle of each new probe (default 30)")
     b.add_argument("--sigma", type=float, metavar="DEG",
                    help="--add-probes, --join: the vote width of those shelves (default: as it was)")
+    b.add_argument("--design", default="cat", choices=list(DESIGNS),
+                   help="search and judge every motion on another buildable cat of the design study (its servos, "
+                   "paws and physics step; default cat, the described one)")
     b.set_defaults(func=cmd_train_library)
 
 
@@ -297,7 +300,8 @@ def cmd_train_library(args) -> int:
                             generations=args.generations, population=args.population, restarts=args.restarts,
                             seed=args.seed, workers=args.workers, ray_address=args.ray_address, workdir=workdir,
                             resume=args.resume, command=command, fill_generations=args.fill_generations,
-                            fill_rounds=args.fill_rounds, patch_deg=args.patch, progress=progress)
+                            fill_rounds=args.fill_rounds, patch_deg=args.patch, design=args.design,
+                            progress=progress)
     built = [s.height_m for s in lib.shelves]
     if base is not None:
         from felis.learning.landing.library_build import replace_shelves
@@ -344,7 +348,7 @@ def _add_to_library(args, out: Path, command: str) -> int:
         motions.append((rule.x, drop, Path(path).name))
     bar, progress = _stage_bar()
     with bar:
-        lib = add_motions(lib, motions, workers=args.workers, command=command, progress=progress)
+        lib = add_motions(lib, motions, workers=args.workers, command=command, design=args.design, progress=progress)
     _write_library(out, lib)
     for a in lib.meta["added"][-len(motions):]:
         d = a["drop"]
@@ -379,7 +383,7 @@ def _recheck_library(args, out: Path, command: str) -> int:
     from felis.learning.landing.library_build import recheck_entries
 
     base = args.base or DEFAULT_LIBRARY
-    lib = recheck_entries(load_library(base), args.heights, workers=args.workers, command=command)
+    lib = recheck_entries(load_library(base), args.heights, workers=args.workers, command=command, design=args.design)
     _write_library(out, lib)
     for a in lib.meta["rechecked"][-len(args.heights):]:
         print(f"{a['height_m']:g} m: {a['landed']} of {a['entries']} entries land their own attitude "
@@ -409,7 +413,8 @@ def _add_probes_to_library(args, out: Path, command: str) -> int:
     with bar:
         lib = add_probes(lib, args.heights, args.add_probes, radius_deg=args.probe_radius,
                          max_tilt_deg=args.max_tilt, sigma_deg=args.sigma, workers=args.workers, command=command,
-                         workdir=workdir, resume=args.resume, near_misses=args.near_misses, progress=progress)
+                         workdir=workdir, resume=args.resume, near_misses=args.near_misses, design=args.design,
+                         progress=progress)
     _write_library(out, lib)
     for a in lib.meta["probes_added"][-len(args.heights):]:
         print(f"{a['height_m']:g} m: {a['probes']} probes added ({a['points']}-point sphere, motions within "
@@ -431,7 +436,7 @@ def _extend_library(args, out: Path, command: str) -> int:
         lib = extend_shelves(lib, args.heights, args.extend, probes=args.probes, radius_deg=args.probe_radius,
                              fill_generations=args.fill_generations, fill_rounds=args.fill_rounds, seed=args.seed,
                              workers=args.workers, command=command, workdir=workdir, resume=args.resume,
-                             progress=progress)
+                             design=args.design, progress=progress)
     _write_library(out, lib)
     for a in lib.meta["extended"][-len(args.heights):]:
         s = lib.shelf(a["height_m"])

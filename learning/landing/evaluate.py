@@ -261,7 +261,7 @@ def run_drops(drops: Sequence[Drop], policy: str = "passive", *, workers: int | 
     """Run every drop with ``policy``, batched (`BatchLandingSim`: ``chunk`` cats at a time on ``workers``
     threads, default every core); results in drop order, identical whatever the number of workers (each cat
     is stepped alone). ``progress(n)`` after each batch of n drops. ``design``: another buildable cat
-    (`felis.learning.landing.designs.DESIGNS`); ``timestep``: the physics step in s (default the model's, 1 ms;
+    (`felis.learning.landing.designs.DESIGNS`); ``timestep``: the physics step in s (default the design's;
     it must divide the 10 ms control tick)."""
     from felis.learning.landing.designs import design_sim, get_design
 

@@ -251,7 +251,7 @@ def library_from_dict(doc) -> MotionLibrary:
             raise ParameterError(f"{where}: sigma_deg must be a positive number")
         shelves.append(Shelf(float(h), U, X, landed, P, lands, drops if all(d is not None for d in drops) else None,
                              None if sig is None else float(sig)))
-    meta = {k: doc[k] for k in ("made_by", "grid", "search", "added", "extended_by", "probes_added",
+    meta = {k: doc[k] for k in ("made_by", "design", "grid", "search", "added", "extended_by", "probes_added",
                                      "rebuilt", "joined", "rechecked", "extended", "revoted") if k in doc}
     return MotionLibrary(shelves, float(rs[0]), float(rs[1]), meta)
 

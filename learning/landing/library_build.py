@@ -12,7 +12,9 @@ Checkpoints per height in ``WORKDIR/<h>m/``: ``optimum.jsonl`` (per drop), ``rob
 ``fill.npz`` (``fill2.npz``…); ``resume`` goes on from them. Deterministic for a seed. `replace_shelves` puts
 the shelves built into another library (``--base``: one shelf rebuilt, the others kept); `join_shelves` puts two
 libraries' motions for a height on one shelf (``--join``); `extend_shelves` takes a shelf beyond its maximum tilt
-by continuation from the motions at its edge (``--extend``).
+by continuation from the motions at its edge (``--extend``). Every search and try runs on the described cat, or on
+``design`` (a cat of `felis.learning.landing.designs.DESIGNS`: its servos, paws and physics step; ``--design``),
+whose name a built library records (``design``).
 """
 
 from __future__ import annotations
@@ -223,7 +225,7 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
                   restarts: int = 1, seed: int = 0, workers: int | None = None, ray_address: str | None = None,
                   workdir: str | Path | None = None, resume: bool = False, command: str = "",
                   robust_generations: int = ROBUST_GENERATIONS, fill_generations: int = FILL_GENERATIONS,
-                  fill_rounds: int = FILL_ROUNDS, patch_deg: float = 0.0,
+                  fill_rounds: int = FILL_ROUNDS, patch_deg: float = 0.0, design: str = "cat",
                   progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """The library (module doc); ``progress(stage, done, total)`` with stage ``"<h> m optimum"``, ``"<h> m
     robust"``, ``"<h> m probes"`` or ``"<h> m fill <round>"``. ``robust_generations`` 0: no robust stage;
@@ -231,7 +233,7 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
     entries' tries on the probes. ``patch_deg`` > 0: each entry's search must land the four attitudes that far
     away too (`felis.learning.landing.optimum.evaluate`; an entry then counts as landed only if it lands all five),
     for motions whose landing holds when the release attitude is a little off (docs/landing.md)."""
-    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.designs import design_sim
     from felis.learning.landing.optimum import optimise_all
 
     if not heights or any(not (isinstance(h, int | float) and math.isfinite(h) and h > 0) for h in heights):
@@ -254,11 +256,11 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
 
         best = optimise_all(drops, generations=generations, population=population, restarts=restarts, seed=seed,
                             workers=workers, ray_address=ray_address, workdir=None if where is None else str(where),
-                            resume=resume, progress=step, patch_deg=patch_deg)
+                            resume=resume, progress=step, patch_deg=patch_deg, design=design)
         x = np.array([o.x for o in best])
         landed = np.array([o.landed for o in best])
         entry_up, entry_drops = ups, [o.drop.as_dict() for o in best]
-        sim = BatchLandingSim(nthread=workers)
+        sim = design_sim(design, nthread=workers)
         try:
             if robust_generations > 0 and landed.any():  # a robust twin of every entry that landed, beside it
                 rows = np.flatnonzero(landed)
@@ -324,6 +326,8 @@ def build_library(heights: Sequence[float] = (1.0, 3.0), *, grid: int = GRID, pr
                                     "population": ROBUST_POPULATION,
                                     "offset_deg": FILL_OFFSET_DEG,
                                     "vote_sigma_deg": SIGMA_DEG}} if fill_generations > 0 else {})}}
+    if design != "cat":
+        meta["design"] = design
     return MotionLibrary(shelves, meta=meta)
 
 
@@ -351,20 +355,21 @@ def _shelves_for(lib: MotionLibrary, heights: Sequence[float]) -> tuple[dict, li
 
 
 def add_motions(lib: MotionLibrary, motions: Sequence[tuple[np.ndarray, dict, str]], *, workers: int | None = None,
-                command: str = "", progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
+                command: str = "", design: str = "cat",
+                progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """``lib`` with more entries: each motion (x (55,), the drop it was searched for, its name), for example one
     the optimum found for a hard drop (`felis eval landing --policy optimum --motions DIR`), joins the shelf of its
     drop's height (mirrored to u_y ≥ 0 when its drop is not), is tried on that drop with yaw 0 (``landed``) and,
     with its mirror image, on the probes within `EVAL_RADIUS_DEG` (the shelf's other results are kept). A start
     beyond the probes' tilt that no probe votes for then gets the nearest entry that landed: the added one near its
     drop. The meta records each addition (``added``) and the command."""
-    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.designs import design_sim
     from felis.learning.landing.library import drop_up, mirror_motion, mirror_up
     from felis.learning.landing.optimum import evaluate
 
     shelves = {s.height_m: s for s in lib.shelves}
     added = []
-    sim = BatchLandingSim(nthread=workers)
+    sim = design_sim(design, nthread=workers)
     try:
         for x, drop, name in motions:
             h = float(drop["height_m"])
@@ -408,7 +413,7 @@ def _nearest(a: np.ndarray, b: np.ndarray, chunk: int = 4096) -> tuple[np.ndarra
 def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, radius_deg: float = EVAL_RADIUS_DEG,
                max_tilt_deg: float = MAX_TILT_DEG, sigma_deg: float | None = None, workers: int | None = None,
                command: str = "", workdir: str | Path | None = None, resume: bool = False,
-               near_misses: bool = False,
+               near_misses: bool = False, design: str = "cat",
                progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """``lib`` with more probes on the shelves of ``heights``: the attitudes of a ``points``-point Fibonacci sphere
     (tilt ≤ ``max_tilt_deg``, u_y ≥ 0; those already probed are skipped), each tried with the candidates within
@@ -419,7 +424,7 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     grid gives, at a fifth of the points; docs/landing.md). Checkpoint per height in
     ``workdir/<h>m/probes_added.npy`` (``resume``). The meta records each addition (``probes_added``) and the
     command."""
-    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.designs import design_sim
 
     if points < 1 or not 0 < radius_deg <= 180 or not 0 < max_tilt_deg <= 180:
         raise ParameterError(f"--add-probes needs points ≥ 1, and --probe-radius and --max-tilt within (0, 180] "
@@ -427,7 +432,7 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
     _check_sigma(sigma_deg)
     shelves, targets = _shelves_for(lib, heights)
     added = []
-    sim = BatchLandingSim(nthread=workers)
+    sim = design_sim(design, nthread=workers)
     try:
         for shelf in targets:
             h = shelf.height_m
@@ -468,7 +473,7 @@ def add_probes(lib: MotionLibrary, heights: Sequence[float], points: int, *, rad
 def extend_shelves(lib: MotionLibrary, heights: Sequence[float], max_tilt_deg: float, *, probes: int = PROBES,
                    radius_deg: float = EVAL_RADIUS_DEG, fill_generations: int = FILL_GENERATIONS,
                    fill_rounds: int = FILL_ROUNDS, seed: int = 0, workers: int | None = None, command: str = "",
-                   workdir: str | Path | None = None, resume: bool = False,
+                   workdir: str | Path | None = None, resume: bool = False, design: str = "cat",
                    progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
     """``lib`` whose shelves of ``heights`` reach further from upright, by continuation from the motions that land
     at their edge (the grid's optimum, searched from scratch, lands almost nothing tilted beyond 100°;
@@ -481,7 +486,7 @@ def extend_shelves(lib: MotionLibrary, heights: Sequence[float], max_tilt_deg: f
     become entries and are tried on every probe within ``radius_deg``. The shelf's other results are kept.
     Checkpoints per height in ``workdir/<h>m/``: ``extend_probes.npy``, ``extend_fill<k>.npz``,
     ``extend_probes<k>.npy`` (``resume``). The meta records each extension (``extended``) and the command."""
-    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.designs import design_sim
 
     if probes < 1 or not 0 < radius_deg <= 180 or not 0 < max_tilt_deg <= 180:
         raise ParameterError(f"--extend needs a maximum tilt and --probe-radius within (0, 180] degrees and --probes "
@@ -498,7 +503,7 @@ def extend_shelves(lib: MotionLibrary, heights: Sequence[float], max_tilt_deg: f
                                  f"{reach:.1f}° already")
         targets.append((shelf, reach))
     extended = []
-    sim = BatchLandingSim(nthread=workers)
+    sim = design_sim(design, nthread=workers)
     try:
         for shelf, reach in targets:
             h = shelf.height_m
@@ -574,18 +579,18 @@ def candidate_drop(shelf: Shelf, c: int) -> Drop:
 
 
 def recheck_entries(lib: MotionLibrary, heights: Sequence[float], *, workers: int | None = None,
-                    command: str = "") -> MotionLibrary:
+                    command: str = "", design: str = "cat") -> MotionLibrary:
     """``lib`` with each entry of the shelves of ``heights`` tried again on its own drop (its recorded drop, else
     its attitude with yaw 0) and its ``landed`` set to what it does: what a start that no probe votes for falls
     back on. Libraries built before `robustify`
     judged each entry on its own attitudes carry twins and fills flagged for another attitude. The probes'
     verdicts are kept; the meta records the recheck (``rechecked``) and the command."""
-    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.designs import design_sim
     from felis.learning.landing.optimum import evaluate
 
     shelves, picked = _shelves_for(lib, heights)
     done = []
-    sim = BatchLandingSim(nthread=workers)
+    sim = design_sim(design, nthread=workers)
     try:
         for shelf in picked:
             drops = [candidate_drop(shelf, 2 * i) for i in range(len(shelf.up))]

@@ -344,7 +344,7 @@ def optimise_all(drops: Sequence[Drop], *, generations: int = GENERATIONS, popul
     each round of chunks, n drops done in it. ``design``: a cat of `felis.learning.landing.designs.DESIGNS`;
     ``late_ticks``, ``patch_deg``: as in `optimise`; ``warm``: a library file (its path, which every worker
     reads; on Ray, the same path on every machine) whose motions join the seeds, as `optimise`'s ``warm``;
-    ``timestep_ms``: the physics step (default the model's, 1 ms; it must divide the 10 ms control tick)."""
+    ``timestep_ms``: the physics step (default the design's; it must divide the 10 ms control tick)."""
     import json
     from pathlib import Path
 

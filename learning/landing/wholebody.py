@@ -150,7 +150,7 @@ def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, desig
     Whether a candidate lands is tried here (`felis.learning.landing.optimum.evaluate`, nearest first, a batch
     of `PICK_BATCH` at a time), not read from the file's flags. ``library``: a `MotionLibrary` or a library
     file."""
-    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.designs import design_sim
     from felis.learning.landing.library import MotionLibrary, angles_deg, load_library
     from felis.learning.landing.library_build import candidate_drop
     from felis.learning.landing.optimum import evaluate
@@ -164,12 +164,7 @@ def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, desig
     if not shelf.drops:
         raise ParameterError(f"motion library: the {height_m:g} m shelf does not record its entries' drops")
     cand_up, cand_x, _ = shelf.candidates()
-    if design is None:
-        sim = BatchLandingSim()
-    else:
-        from felis.learning.landing.designs import design_sim
-
-        sim = design_sim(design)
+    sim = design_sim(design or "cat")  # "cat": `BatchLandingSim()` itself
     used: set[int] = set()
     out: list[dict] = []
     try:

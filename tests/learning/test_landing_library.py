@@ -274,8 +274,9 @@ def test_robustify_judges_each_entry_on_its_own_attitudes_when_others_are_done()
 def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
     from felis.learning.landing.library_build import build_library, fibonacci_ups
 
+    # on the 4 ms-paw cat (its 1 ms step: half the physics of the described cat's, the same machinery)
     kw = dict(heights=(1.0,), grid=30, probes=50, max_tilt_deg=60.0, generations=1, population=2, restarts=0,
-              workers=1, robust_generations=1, fill_generations=1)
+              workers=1, robust_generations=1, fill_generations=1, design="4ms-paw")
     assert len(fibonacci_ups(30, 60.0)) >= 2
     one = build_library(**kw, workdir=tmp_path / "a")
     where = tmp_path / "a" / "1m"
@@ -295,16 +296,18 @@ def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
     assert len(s.up) > len(fibonacci_ups(30, 60.0))  # twins or fills beside the grid's entries
     fresh = build_library(**kw)  # no checkpoints at all: the same library
     assert np.array_equal(fresh.shelves[0].x, s.x) and np.array_equal(fresh.shelves[0].lands, s.lands)
+    assert one.meta["design"] == "4ms-paw"
 
 
 def test_cli_builds_a_library_that_eval_runs(tmp_path):
     out = tmp_path / "lib.json"
     r = _felis("train", "landing-library", "--out", str(out), "--heights", "1", "--grid", "12", "--probes", "20",
                "--max-tilt", "60", "--generations", "1", "--population", "2", "--restarts", "0", "--workers", "1",
-               "--fill-generations", "1")
+               "--fill-generations", "1", "--design", "4ms-paw")
     assert r.returncode == 0, r.stderr
     assert f"library: {out}" in r.stdout and "1 m:" in r.stdout
-    assert json.loads(out.read_text())["made_by"].startswith("felis train landing-library")
+    doc = json.loads(out.read_text())
+    assert doc["made_by"].startswith("felis train landing-library") and doc["design"] == "4ms-paw"
     r = _felis("eval", "landing", "--drops", "random:2", "--policy", str(out), "--json")
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["total"] == 2
