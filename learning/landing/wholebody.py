@@ -146,7 +146,8 @@ def _up(o) -> np.ndarray:
 def library_picks(library, height_m: float = TRAIN_HEIGHT_M, targets=None, design: str | None = None) -> list[dict]:
     """For each target (roll, pitch, yaw °; default `TRAINING_ORIENTATIONS`), the library candidate (an entry of
     the shelf for ``height_m``, or its mirror image) that starts nearest the target by up-axis and lands its own
-    attitude, each used once (module doc): ``{"target", "orientation", "x", "entry", "mirrored", "angle_deg"}``.
+    attitude, each used once (module doc): ``{"target", "orientation", "x", "entry", "mirrored", "angle_deg"}``;
+    ``design``: tried on that cat of `felis.learning.landing.designs.DESIGNS` (default the described one).
     Whether a candidate lands is tried here (`felis.learning.landing.optimum.evaluate`, nearest first, a batch
     of `PICK_BATCH` at a time), not read from the file's flags. ``library``: a `MotionLibrary` or a library
     file."""
