@@ -615,8 +615,11 @@ def test_the_cats_shipped_ceilings_are_of_the_drops_and_step_they_name(height, s
 
 @pytest.mark.parametrize("design, height, step, policy, want, share", [
     ("cat", 1.0, None, "library", 89, 100), ("cat", 3.0, None, "library", 98, 94),
-    ("4ms-paw", 1.0, None, "library", 89, 96), ("4ms-paw", 3.0, None, "library", 94, 89),
-    ("soft-rubber-paw", 1.0, None, "library", 88, 94), ("soft-rubber-paw", 3.0, None, "library", 96, 91),
+    # the cats before 2026-11-29 (their figures reproduce; `make test-slow`, keeping the default run under 10 min)
+    pytest.param("4ms-paw", 1.0, None, "library", 89, 96, marks=pytest.mark.slow),
+    pytest.param("4ms-paw", 3.0, None, "library", 94, 89, marks=pytest.mark.slow),
+    pytest.param("soft-rubber-paw", 1.0, None, "library", 88, 94, marks=pytest.mark.slow),
+    pytest.param("soft-rubber-paw", 3.0, None, "library", 96, 91, marks=pytest.mark.slow),
     pytest.param("cat", 1.0, 1.0, "4ms-vote", 90, 84, marks=pytest.mark.slow),  # the step that does not resolve
     pytest.param("cat", 3.0, 1.0, "4ms-vote", 97, 61, marks=pytest.mark.slow),  # the 2 ms paw, and the old vote
     pytest.param("cat", 1.0, None, "4ms-vote", 89, 93, marks=pytest.mark.slow),
