@@ -60,6 +60,9 @@ def register_train(train_sub) -> None:
                    f"{d.general_max_tilt_deg:g}: any)")
     t.add_argument("--samples", type=Path, metavar="FILE", help="motion samples (default: the shipped ones), or a "
                    "motion library: its landing motions nearest the 7 orientations")
+    t.add_argument("--design", default=d.design, choices=list(DESIGNS),
+                   help="evolve on another buildable cat of the design study (its servos, paws and physics step; "
+                   "default cat, the described one; the shipped nets were evolved on 4ms-paw)")
     t.add_argument("--workers", type=int, help="local processes (default: every core)")
     t.add_argument("--ray-address", metavar="ADDRESS|auto|local",
                    help="run rollouts on a Ray cluster (needs felis[cluster]); local starts one here")
@@ -201,7 +204,7 @@ def cmd_train_landing(args) -> int:
                       use_similarity=not args.f_only, samples=str(args.samples or ""), fitness=args.fitness,
                       one_net=args.one_net, generations_general=args.generations_general,
                       general_drops=args.general_drops, general_max_tilt_deg=args.general_max_tilt,
-                      workers=args.workers,
+                      design=args.design, workers=args.workers,
                       ray_address=args.ray_address)
     out = Path(args.out)
     if out.suffix.lower() != ".npz":

@@ -42,6 +42,9 @@ class TrainConfig:
     ``general_drops`` random drops per generation (new ones each generation, from 1 m and 3 m in turn,
     start tilt at most ``general_max_tilt_deg``), seeded with the previous stages' simple behaviours and
     one that holds still (passive); its best is then the policy.
+    ``design``: the cat the rollouts run on, one of `felis.learning.landing.designs.DESIGNS` (its servos, paws
+    and physics step; default ``cat``, the described one; the shipped nets were trained on the cat as described
+    until 2026-11-29, now ``4ms-paw``).
     ``workers``/``ray_address``: where rollouts run (`make_evaluator`); they never change the results.
     """
 
@@ -68,6 +71,7 @@ class TrainConfig:
     generations_general: int = 0
     general_drops: int = 16
     general_max_tilt_deg: float = 180.0
+    design: str = "cat"
     workers: int | None = None
     ray_address: str | None = None
 
@@ -132,6 +136,10 @@ class TrainConfig:
         for name in ("use_similarity", "smooth_upright", "one_net"):
             if not isinstance(getattr(self, name), bool):
                 raise ParameterError(f"training {name} must be true or false, got {getattr(self, name)!r}")
+        from felis.learning.landing.designs import DESIGNS  # late: the designs need the robot descriptions
+
+        if self.design not in DESIGNS:
+            raise ParameterError(f"training design must be one of {', '.join(DESIGNS)}, got {self.design!r}")
         if not isinstance(self.samples, str):
             raise ParameterError(f"training samples must be a file path (text), got {self.samples!r}")
         if self.ray_address is not None and (not isinstance(self.ray_address, str) or not self.ray_address.strip()):

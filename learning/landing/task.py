@@ -65,6 +65,7 @@ class Task:
     tf: tuple[np.ndarray, ...]
     robot: str = "cat"
     fitness: str = "eq9"
+    design: str = "cat"  # a cat of `felis.learning.landing.designs.DESIGNS`
 
     @property
     def k(self) -> int:
@@ -139,7 +140,7 @@ def init_worker(task: Task) -> None:
     from felis.learning.landing.evaluate import LandingSim
 
     release_worker()
-    _WORKER = (LandingSim(task.robot), task)
+    _WORKER = (LandingSim(task.robot, design=None if task.design == "cat" else task.design), task)
 
 
 def release_worker() -> None:
@@ -176,7 +177,21 @@ def init_batch_worker(task: Task) -> None:
 
     release_batch_worker()
     nthread = None if multiprocessing.parent_process() is None else 1
-    sim = BatchLandingSim(task.robot, nthread=nthread, sensors=motion_sensors)
+    if task.design == "cat":
+        sim = BatchLandingSim(task.robot, nthread=nthread, sensors=motion_sensors)
+    else:
+        from felis.learning.landing.designs import design_robot, get_design
+        from felis.spec import load_spec
+
+        d = get_design(task.design)
+        spec, servo, edit = design_robot(d, load_spec(task.robot))
+
+        def sensors(ms) -> None:  # the design's model edit (its paws), then the motion sensors
+            if edit is not None:
+                edit(ms)
+            motion_sensors(ms)
+
+        sim = BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=sensors, timestep=d.timestep_s)
     _BATCH = (sim, task, SensorMotion(sim.batch.model))
 
 
@@ -300,5 +315,5 @@ def make_task(cfg: TrainConfig, samples: Sequence[Any]) -> tuple[Task, list[int]
     task = Task(orientations=tuple(tuple(float(a) for a in samples[i].orientation) for i in idx),
                 heights_m=tuple(float(samples[i].height_m) for i in idx), steps=cfg.steps,
                 smooth_upright=cfg.smooth_upright, pca=pca, sf=tuple(sfs[i] for i in idx),
-                tf=tuple(tfs[i] for i in idx), fitness=cfg.fitness)
+                tf=tuple(tfs[i] for i in idx), fitness=cfg.fitness, design=cfg.design)
     return task, idx
