@@ -127,8 +127,14 @@ def register_train(train_sub) -> None:
                    "the --probes sphere beyond the shelf's farthest, tried with the motions within --probe-radius, "
                    "then --fill-rounds rounds of fills for those that no motion (or the choice) lands, each searched "
                    "from the nearest motion that lands something (continuation from the shelf's edge)")
+    b.add_argument("--fill", type=float, nargs="?", const=180.0, metavar="DEG",
+                   help="no search of the grid: --fill-rounds rounds of fills over the --heights shelves' own probes "
+                   "(those tilted at most DEG; default all): a motion searched on --design's cat for each probe "
+                   "that no motion lands, then where the vote picks one that fails, each from the nearest motion "
+                   "that lands it or lands something (a shelf searched on another cat leaves holes on this one)")
     b.add_argument("--probe-radius", type=float, default=30.0, metavar="DEG",
-                   help="--add-probes, --extend: try the motions within this angle of each new probe (default 30)")
+                   help="--add-probes, --extend, --fill: try the motions within this angle of each new probe or "
+                   "motion (default 30)")
     b.add_argument("--sigma", type=float, metavar="DEG",
                    help="--add-probes, --join: the vote width of those shelves (default: as it was)")
     b.add_argument("--design", default="cat", choices=list(DESIGNS),
@@ -274,12 +280,14 @@ def cmd_train_library(args) -> int:
     check_target(out, "landing motion library", ParameterError)
     command = "felis " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     if sum(x is not None and x != [] and x is not False for x in (args.add, args.add_probes, args.join,
-                                                                  args.recheck, args.extend)) > 1:
-        raise ParameterError("--add, --add-probes, --join, --recheck and --extend: one at a time")
+                                                                  args.recheck, args.extend, args.fill)) > 1:
+        raise ParameterError("--add, --add-probes, --join, --recheck, --extend and --fill: one at a time")
     if args.near_misses and args.add_probes is None:
         raise ParameterError("--near-misses refines --add-probes N: give it too")
     if args.extend is not None:
         return _extend_library(args, out, command)
+    if args.fill is not None:
+        return _fill_library(args, out, command)
     if args.recheck:
         return _recheck_library(args, out, command)
     if args.join is not None:
@@ -448,6 +456,29 @@ def _extend_library(args, out: Path, command: str) -> int:
         print(f"{a['height_m']:g} m: {a['probes']} probes added from {a['from_deg']:.0f}° to {a['max_tilt_deg']:g}°, "
               f"{a['landed_by_some_before']} landed by some motion before the fill, {a['landed_by_some']} after"
               + (f" ({fills})" if fills else "") + f"; {len(s.up)} entries in all")
+    print(f"library: {out} (from {base})")
+    return 0
+
+
+def _fill_library(args, out: Path, command: str) -> int:
+    """``felis train landing-library --fill [DEG] [--heights H…] [--base LIBRARY]``: `fill_shelves`."""
+    from felis.learning.landing.library_build import fill_shelves
+
+    base, lib, workdir = _base_and_workdir(args, out)
+    bar, progress = _stage_bar()
+    with bar:
+        lib = fill_shelves(lib, args.heights, max_tilt_deg=args.fill, radius_deg=args.probe_radius,
+                           fill_generations=args.fill_generations, fill_rounds=args.fill_rounds, seed=args.seed,
+                           workers=args.workers, command=command, workdir=workdir, resume=args.resume,
+                           design=args.design, progress=progress)
+    _write_library(out, lib)
+    for a in lib.meta["filled"][-len(args.heights):]:
+        s = lib.shelf(a["height_m"])
+        fills = ", ".join(f"round {k}: {r['entries']} entries of {r['targets']} targets, {r['land_their_probe']} "
+                          "land their probe" for k, r in enumerate(a["fill"]["rounds"], 1))
+        print(f"{a['height_m']:g} m: of {a['probes']} probes tilted at most {a['max_tilt_deg']:g}°, "
+              f"{a['landed_by_some_before']} landed by some motion before the fill, {a['landed_by_some']} after "
+              f"({fills}; on {a['design']}); {len(s.up)} entries in all")
     print(f"library: {out} (from {base})")
     return 0
 

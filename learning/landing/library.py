@@ -24,9 +24,9 @@ nearest entry). An attitude with u_y < 0 is mirrored first and its choice mirror
 denser than the library's (``felis train landing-library --add-probes``) may vote with its own, narrower σ.
 
 **File** (`load_library`, JSON): ``{"format": FORMAT, "version": 1, "made_by", ["added", "extended_by",
-"probes_added", "rebuilt", "joined", "rechecked", "extended",] "radius_deg", "sigma_deg", "shelves": [{"height_m",
-["sigma_deg",] "entries": [{"up", "drop", "landed", "motion_x"}], "probes": [{"up", "lands"}]}]}``; ``lands`` lists
-candidate ids, 2·entry + (1 if mirrored). Made by ``felis train landing-library``.
+"probes_added", "rebuilt", "joined", "rechecked", "extended", "filled",] "radius_deg", "sigma_deg", "shelves":
+[{"height_m", ["sigma_deg",] "entries": [{"up", "drop", "landed", "motion_x"}], "probes": [{"up", "lands"}]}]}``;
+``lands`` lists candidate ids, 2·entry + (1 if mirrored). Made by ``felis train landing-library``.
 
 **Votes file** (the same format and version): the votes of another library file taken again on another cat or
 physics step (`bench/landing_revote.py`), which candidates land each probe there; its motions and probes are that
@@ -252,7 +252,7 @@ def library_from_dict(doc) -> MotionLibrary:
         shelves.append(Shelf(float(h), U, X, landed, P, lands, drops if all(d is not None for d in drops) else None,
                              None if sig is None else float(sig)))
     meta = {k: doc[k] for k in ("made_by", "design", "grid", "search", "added", "extended_by", "probes_added",
-                                     "rebuilt", "joined", "rechecked", "extended", "revoted") if k in doc}
+                                     "rebuilt", "joined", "rechecked", "extended", "filled", "revoted") if k in doc}
     return MotionLibrary(shelves, float(rs[0]), float(rs[1]), meta)
 
 

@@ -525,35 +525,13 @@ def extend_shelves(lib: MotionLibrary, heights: Sequence[float], max_tilt_deg: f
             new_lands = try_probes(sim, shelf.up, shelf.x, new, h, done=done, save=save, radius_deg=radius_deg,
                                    progress=bar("new probes"))
             before = int(new_lands.any(axis=1).sum())
-            up, x, landed = shelf.up, shelf.x, shelf.landed
-            drops = list(shelf.drops) if shelf.drops else [up_drop(v, h).as_dict() for v in shelf.up]
-            probe_up = np.concatenate([shelf.probe_up, new])
-            lands = np.concatenate([shelf.lands, new_lands])
-            mine = np.arange(len(shelf.probe_up), len(probe_up))
-            sigma = shelf.sigma_deg or lib.sigma_deg
-            rounds = []
-            for k in range(1, fill_rounds + 1) if fill_generations > 0 else ():
-                ck = None if where is None else where / f"extend_fill{k}.npz"
-                if resume and ck is not None and ck.is_file():
-                    with np.load(ck) as f:
-                        at, fx, fn, fc = f["targets"], f["x"], f["landed"], f["centre"]
-                else:
-                    cur = Shelf(h, up, x, landed, probe_up, lands, drops, shelf.sigma_deg)
-                    at = np.union1d(mine[~lands[mine].any(axis=1)], misses(cur, lib.radius_deg, sigma, among=mine))
-                    fx, fn, fc = fill(sim, cur, at, generations=fill_generations, seed=seed + k,
-                                      progress=bar(f"fill {k}"))
-                    if ck is not None:
-                        np.savez(ck, targets=at, x=fx, landed=fn, centre=fc)
-                keep = fn > 0
-                up = np.concatenate([up, probe_up[at[keep]]])
-                x = np.concatenate([x, fx[keep]])
-                landed = np.concatenate([landed, fc[keep]])
-                drops += [up_drop(v, h).as_dict() for v in probe_up[at[keep]]]
-                done, save = checkpoint(f"extend_probes{k}.npy")
-                lands = try_probes(sim, up, x, probe_up, h, done=lands.astype(np.int8) if done is None else done,
-                                   save=save, radius_deg=radius_deg, progress=bar("probes"))
-                rounds.append({"targets": len(at), "entries": int(keep.sum()), "land_their_probe": int(fc.sum())})
-            shelves[h] = Shelf(h, up, x, landed, probe_up, lands, drops, shelf.sigma_deg)
+            grown = Shelf(h, shelf.up, shelf.x, shelf.landed, np.concatenate([shelf.probe_up, new]),
+                          np.concatenate([shelf.lands, new_lands]), shelf.drops, shelf.sigma_deg)
+            mine = np.arange(len(shelf.probe_up), len(grown.probe_up))
+            shelves[h], rounds = _fill_rounds(sim, grown, mine, lib, "extend", fill_generations=fill_generations,
+                                              fill_rounds=fill_rounds, seed=seed, radius_deg=radius_deg,
+                                              where=where, resume=resume, bar=bar)
+            lands = shelves[h].lands
             extended.append({"height_m": h, "from_deg": round(reach, 3), "max_tilt_deg": float(max_tilt_deg),
                              "points": int(probes), "radius_deg": float(radius_deg), "probes": int(len(new)),
                              "landed_by_some_before": before, "landed_by_some": int(lands[mine].any(axis=1).sum()),
@@ -562,6 +540,92 @@ def extend_shelves(lib: MotionLibrary, heights: Sequence[float], max_tilt_deg: f
     finally:
         sim.close()
     return _extended(lib, shelves, "extended", extended, command)
+
+
+def _fill_rounds(sim, shelf: Shelf, mine: np.ndarray, lib: MotionLibrary, name: str, *, fill_generations: int,
+                 fill_rounds: int, seed: int, radius_deg: float, where: Path | None, resume: bool, bar):
+    """``fill_rounds`` rounds of `fill` aimed at the probes ``mine`` of ``shelf``: each round at those that no
+    candidate lands and those where the choice, their own vote left out, picks a motion that fails there; the new
+    motions that land any of their five attitudes become entries, tried on every probe within ``radius_deg``.
+    Checkpoints ``<name>_fill<k>.npz`` and ``<name>_probes<k>.npy`` in ``where`` (``resume``). Returns (the shelf,
+    one record per round)."""
+    h = shelf.height_m
+    up, x, landed, probe_up, lands = shelf.up, shelf.x, shelf.landed, shelf.probe_up, shelf.lands
+    drops = list(shelf.drops) if shelf.drops else [up_drop(v, h).as_dict() for v in shelf.up]
+    sigma = shelf.sigma_deg or lib.sigma_deg
+    rounds = []
+    for k in range(1, fill_rounds + 1) if fill_generations > 0 else ():
+        ck = None if where is None else where / f"{name}_fill{k}.npz"
+        if resume and ck is not None and ck.is_file():
+            with np.load(ck) as f:
+                at, fx, fn, fc = f["targets"], f["x"], f["landed"], f["centre"]
+        else:
+            cur = Shelf(h, up, x, landed, probe_up, lands, drops, shelf.sigma_deg)
+            at = np.union1d(mine[~lands[mine].any(axis=1)], misses(cur, lib.radius_deg, sigma, among=mine))
+            fx, fn, fc = fill(sim, cur, at, generations=fill_generations, seed=seed + k, progress=bar(f"fill {k}"))
+            if ck is not None:
+                np.savez(ck, targets=at, x=fx, landed=fn, centre=fc)
+        keep = fn > 0
+        up = np.concatenate([up, probe_up[at[keep]]])
+        x = np.concatenate([x, fx[keep]])
+        landed = np.concatenate([landed, fc[keep]])
+        drops += [up_drop(v, h).as_dict() for v in probe_up[at[keep]]]
+        ck = None if where is None else where / f"{name}_probes{k}.npy"
+        done = np.load(ck) if resume and ck is not None and ck.exists() else None
+        lands = try_probes(sim, up, x, probe_up, h, done=lands.astype(np.int8) if done is None else done,
+                           save=None if ck is None else (lambda r, ck=ck: np.save(ck, r)), radius_deg=radius_deg,
+                           progress=bar("probes"))
+        rounds.append({"targets": len(at), "entries": int(keep.sum()), "land_their_probe": int(fc.sum())})
+    return Shelf(h, up, x, landed, probe_up, lands, drops, shelf.sigma_deg), rounds
+
+
+def fill_shelves(lib: MotionLibrary, heights: Sequence[float], *, max_tilt_deg: float = 180.0,
+                 radius_deg: float = EVAL_RADIUS_DEG, fill_generations: int = FILL_GENERATIONS,
+                 fill_rounds: int = 1, seed: int = 0, workers: int | None = None, command: str = "",
+                 workdir: str | Path | None = None, resume: bool = False, design: str = "cat",
+                 progress: Callable[[str, int, int], None] | None = None) -> MotionLibrary:
+    """``lib`` whose shelves of ``heights`` get new motions, searched on ``design``'s cat, where their probes (those
+    tilted at most ``max_tilt_deg``) are not landed: the fill rounds of `extend_shelves` over the shelf's own probes
+    (`_fill_rounds`: the holes no candidate lands, then the misses of the vote), each motion searched from the nearest
+    that lands the probe or lands something. For a shelf whose motions were searched on another cat (the shipped
+    ones, on `4ms-paw`): on this one they leave holes. Checkpoints per height in ``workdir/<h>m/``
+    (``fill_fill<k>.npz``, ``fill_probes<k>.npy``; ``resume``). The meta records each fill (``filled``) and the
+    command."""
+    from felis.learning.landing.designs import design_sim
+
+    if not 0 < radius_deg <= 180 or not 0 < max_tilt_deg <= 180:
+        raise ParameterError(f"--fill needs --max-tilt and --probe-radius within (0, 180] degrees; got "
+                             f"{max_tilt_deg:g}° and {radius_deg:g}°")
+    if fill_generations < 1 or fill_rounds < 1:
+        raise ParameterError(f"--fill needs --fill-generations and --fill-rounds ≥ 1, got {fill_generations} and "
+                             f"{fill_rounds}")
+    shelves, picked = _shelves_for(lib, heights)
+    filled = []
+    sim = design_sim(design, nthread=workers)
+    try:
+        for shelf in picked:
+            h = shelf.height_m
+            where = None if workdir is None else Path(workdir) / f"{h:g}m"
+            if where is not None:
+                where.mkdir(parents=True, exist_ok=True)
+            mine = np.flatnonzero(tilts_deg(shelf.probe_up) <= max_tilt_deg + 1e-6)
+            before = int(shelf.lands[mine].any(axis=1).sum())
+
+            def bar(stage: str, h=h):
+                return None if progress is None else (lambda d, t: progress(f"{h:g} m {stage}", d, t))
+
+            shelves[h], rounds = _fill_rounds(sim, shelf, mine, lib, "fill", fill_generations=fill_generations,
+                                              fill_rounds=fill_rounds, seed=seed, radius_deg=radius_deg,
+                                              where=where, resume=resume, bar=bar)
+            filled.append({"height_m": h, "design": design, "max_tilt_deg": float(max_tilt_deg),
+                           "radius_deg": float(radius_deg), "probes": int(len(mine)),
+                           "landed_by_some_before": before,
+                           "landed_by_some": int(shelves[h].lands[mine].any(axis=1).sum()),
+                           "fill": {"generations": fill_generations, "population": ROBUST_POPULATION,
+                                    "offset_deg": FILL_OFFSET_DEG, "seed": seed, "rounds": rounds}})
+    finally:
+        sim.close()
+    return _extended(lib, shelves, "filled", filled, command)
 
 
 def candidate_drop(shelf: Shelf, c: int) -> Drop:

@@ -562,7 +562,7 @@ def test_add_probes_refuses_a_height_without_a_shelf_and_bad_numbers_in_one_line
                         (("--add-probes", "10", "--sigma", "0"), "--sigma must be a positive number"),
                         (("--add-probes", "0"), "points ≥ 1"),
                         (("--add-probes", "10", "--add", str(DEFAULT_LIBRARY.parent / "landing_hard_drop.json")),
-                         "--add, --add-probes, --join, --recheck and --extend: one at a time")):
+                         "--add, --add-probes, --join, --recheck, --extend and --fill: one at a time")):
         r = _felis("train", "landing-library", *argv, "--out", str(o))
         assert r.returncode != 0 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not o.exists()
@@ -793,6 +793,54 @@ def test_extend_takes_a_shelf_beyond_its_farthest_probe_from_the_motions_at_its_
     assert f"the 3 m shelf's probes reach {tilts_deg(new).max():.1f}° already" in r.stderr
     r = _felis("eval", "landing", "--drops", "random:2", "--height", "3", "--policy", str(out), "--json")
     assert r.returncode == 0, r.stderr
+
+
+# slow (~30 s): a tool for the shipped library's shelves on the described cat (docs/landing.md)
+@pytest.mark.slow
+def test_fill_searches_a_motion_for_each_hole_of_a_shelf_on_the_cat_it_names_and_resumes(tmp_path):
+    """``--fill``: no new probes; a fill round over the shelf's own probes that no motion lands (and the vote's
+    misses), each motion searched on the described cat from the nearest that lands something; the shelf's entries
+    and results kept; each new entry sits on its probe and its flag is what it does there; resumed from its
+    checkpoints it writes the same library; a bad tilt or another mode beside it is one line."""
+    from felis.learning.landing.evaluate import BatchLandingSim
+    from felis.learning.landing.library_build import up_drop
+    from felis.learning.landing.optimum import evaluate
+
+    _, path = _edge_library(tmp_path)
+    old = load_library(path).shelf(3.0)
+    out, ck = tmp_path / "out.json", tmp_path / "ck"
+    argv = ("train", "landing-library", "--base", str(path), "--fill", "--heights", "3", "--fill-generations", "1",
+            "--fill-rounds", "1", "--out", str(out), "--workdir", str(ck), "--workers", "2")
+    r = _felis(*argv)
+    assert r.returncode == 0, r.stderr
+    lib = load_library(out)
+    s = lib.shelf(3.0)
+    P, E = len(old.probe_up), len(old.up)
+    holes = int((~old.lands.any(axis=1)).sum())
+    assert holes >= 1 and np.array_equal(s.probe_up, old.probe_up)
+    assert np.array_equal(s.x[:E], old.x) and np.array_equal(s.lands[:, :2 * E], old.lands)
+    a = lib.meta["filled"][-1]
+    rnd = a["fill"]["rounds"][0]
+    assert a["design"] == "cat" and a["probes"] == P and a["landed_by_some_before"] == P - holes
+    assert rnd["targets"] >= holes and rnd["entries"] >= 1 and len(s.up) == E + rnd["entries"]
+    assert a["landed_by_some"] > a["landed_by_some_before"]  # the fill lands some hole
+    assert f"3 m: of {P} probes tilted at most 180°, {P - holes} landed by some motion before the fill" in r.stdout
+    assert angles_min(s.up[E:], s.probe_up) < 1e-3
+    sim = BatchLandingSim(nthread=2)
+    try:
+        now = [v.landed for _, v in evaluate(sim, [up_drop(u, 3.0) for u in s.up[E:]], s.x[E:])]
+    finally:
+        sim.close()
+    assert now == s.landed[E:].tolist()
+    assert {p.name for p in (ck / "3m").iterdir()} == {"fill_fill1.npz", "fill_probes1.npy"}
+    out2 = tmp_path / "again.json"
+    r = _felis(*[a if a != str(out) else str(out2) for a in argv], "--resume")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out2.read_text())["shelves"] == json.loads(out.read_text())["shelves"]
+    for extra, says in ((("--fill", "0"), "--fill needs --max-tilt"), (("--fill", "--extend", "120"), "one at a time")):
+        r = _felis("train", "landing-library", "--base", str(path), *extra, "--out", str(tmp_path / "no.json"))
+        assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not (tmp_path / "no.json").exists()
 
 
 def angles_min(a: np.ndarray, b: np.ndarray) -> float:
