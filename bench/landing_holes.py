@@ -1,6 +1,6 @@
 """Where the motion library loses held-out drops: beyond its shelf, in its shelf's holes, or in its vote.
 
-For a shelf (drop height H) of the library and the drops of ``random:100`` for each ``--seeds`` at H:
+For a shelf (drop height H) of the library and the drops of ``random:100`` (``--n``) for each ``--seeds`` at H:
 
 1. **the shelf's holes**: its probes, by start tilt, that no candidate (entry or mirror image) lands in the shelf's
    own results (the vote's data), and the vote's misses (`felis.learning.landing.library_build.misses`);
@@ -12,7 +12,11 @@ For a shelf (drop height H) of the library and the drops of ``random:100`` for e
    of the shelf's holes tilted ``--band`` (drawn with seed 0): how many land their probe, and the seconds a target.
 
     python bench/landing_holes.py [--height 1] [--seeds 10 11 12] [--radius 15] [--fill-sample 24 --band 60 130] \
-        [--design cat] [--json]
+        [--design cat] [--lost FILE] [--json]
+
+``--lost FILE`` writes the lost drops as a drops file, for the ceiling of exactly those drops: ``felis eval landing
+--policy optimum --warm-start --restarts 1 --drops FILE`` (its seeds include the library's choice, so the ceiling of
+the seeds' drops is the library's landings plus what it lands of these).
 
 On the described cat: about 2 minutes for three seeds on 2 cores; the fill sample about 20 s a target.
 """
@@ -22,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -41,10 +46,11 @@ def band_counts(tilts: np.ndarray, mask: np.ndarray) -> dict[str, list[int]]:
             for a, b in zip(BANDS, BANDS[1:], strict=False)}
 
 
-def losses(sim, shelf, library: str, design: str, seed: int, height_m: float, radius_deg: float) -> dict:
-    """The library's lost drops of ``random:100`` seed ``seed``: their tilts, and which a candidate within
+def losses(sim, shelf, library: str, design: str, seed: int, height_m: float, radius_deg: float, n: int = 100
+           ) -> dict:
+    """The library's lost drops of ``random:n`` seed ``seed``: their tilts, and which a candidate within
     ``radius_deg`` lands."""
-    drops = random_drops(100, seed=seed, heights=(height_m,))
+    drops = random_drops(n, seed=seed, heights=(height_m,))
     outs = run_drops(drops, library, design=design)
     lost = [i for i, o in enumerate(outs) if not o.landed]
     cand_up, cand_x = shelf.candidates()[:2]
@@ -59,7 +65,8 @@ def losses(sim, shelf, library: str, design: str, seed: int, height_m: float, ra
         ok += [v.landed for _, v in evaluate(sim, ds, cand_x[[c for _, c in part]])]
     rescued = sorted({i for (i, _), y in zip(pairs, ok, strict=True) if y})
     tilt = {i: float(tilts_deg(drop_up(drops[i])[None])[0]) for i in lost}
-    return {"seed": seed, "landed": 100 - len(lost), "lost": len(lost), "pairs_tried": len(pairs),
+    return {"seed": seed, "drops": n, "landed": n - len(lost), "lost": len(lost), "pairs_tried": len(pairs),
+            "lost_drops": [drops[i].as_dict() for i in lost],
             "lost_tilts": [round(tilt[i]) for i in lost], "a_candidate_lands": len(rescued),
             "rescued_tilts": [round(tilt[i]) for i in rescued]}
 
@@ -68,10 +75,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--height", type=float, default=1.0)
     ap.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12])
+    ap.add_argument("--n", type=int, default=100, help="drops per seed (random:N; default 100)")
     ap.add_argument("--radius", type=float, default=15.0, help="candidates this close to a lost drop are tried")
     ap.add_argument("--design", default="cat")
     ap.add_argument("--fill-sample", type=int, default=0, metavar="N", help="fill N holes (default 0: none)")
     ap.add_argument("--band", type=float, nargs=2, default=[60.0, 130.0], metavar=("LO", "HI"))
+    ap.add_argument("--lost", type=Path, metavar="FILE", help="write the lost drops (a drops file)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
 
@@ -88,7 +97,7 @@ def main() -> None:
     sim = design_sim(args.design, nthread=None)
     try:
         for s in args.seeds:
-            res["seeds"].append(losses(sim, shelf, library, args.design, s, args.height, args.radius))
+            res["seeds"].append(losses(sim, shelf, library, args.design, s, args.height, args.radius, args.n))
             if not args.json:
                 r = res["seeds"][-1]
                 print(f"seed {s}: landed {r['landed']}; of the {r['lost']} lost, a candidate within {args.radius:g}° "
@@ -107,6 +116,8 @@ def main() -> None:
                                   "s_per_target": round(dt / max(1, len(pick)), 1)}
     finally:
         sim.close()
+    if args.lost is not None:
+        args.lost.write_text(json.dumps([d for r in res["seeds"] for d in r["lost_drops"]], indent=1))
     if args.json:
         print(json.dumps(res, indent=1))
         return
