@@ -594,7 +594,7 @@ def fill_shelves(lib: MotionLibrary, heights: Sequence[float], *, max_tilt_deg: 
     from felis.learning.landing.designs import design_sim
 
     if not 0 < radius_deg <= 180 or not 0 < max_tilt_deg <= 180:
-        raise ParameterError(f"--fill needs --max-tilt and --probe-radius within (0, 180] degrees; got "
+        raise ParameterError(f"--fill DEG and --probe-radius must be within (0, 180] degrees; got "
                              f"{max_tilt_deg:g}° and {radius_deg:g}°")
     if fill_generations < 1 or fill_rounds < 1:
         raise ParameterError(f"--fill needs --fill-generations and --fill-rounds ≥ 1, got {fill_generations} and "

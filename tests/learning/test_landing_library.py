@@ -837,7 +837,8 @@ def test_fill_searches_a_motion_for_each_hole_of_a_shelf_on_the_cat_it_names_and
     r = _felis(*[a if a != str(out) else str(out2) for a in argv], "--resume")
     assert r.returncode == 0, r.stderr
     assert json.loads(out2.read_text())["shelves"] == json.loads(out.read_text())["shelves"]
-    for extra, says in ((("--fill", "0"), "--fill needs --max-tilt"), (("--fill", "--extend", "120"), "one at a time")):
+    for extra, says in ((("--fill", "0"), "--fill DEG and --probe-radius must be within (0, 180]"),
+                        (("--fill", "--extend", "120"), "one at a time")):
         r = _felis("train", "landing-library", "--base", str(path), *extra, "--out", str(tmp_path / "no.json"))
         assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "no.json").exists()
