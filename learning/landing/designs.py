@@ -172,14 +172,22 @@ def paw_edit(tau: float) -> Callable:
     return edit
 
 
-def design_sim(design: Design | str, *, nthread: int | None = None, timestep: float | None = None):
+def design_sim(design: Design | str, *, nthread: int | None = None, timestep: float | None = None,
+               sensors: Callable | None = None):
     """`BatchLandingSim` of ``design`` (a `Design` or a name in `DESIGNS`); ``timestep``: its physics step (s;
-    default the design's, else the model's)."""
+    default the design's, else the model's); ``sensors``: an `MjSpec` edit adding sensors (after the design's own
+    edit, its paws)."""
     from felis.learning.landing.evaluate import BatchLandingSim
 
     d = get_design(design) if isinstance(design, str) else design
     spec, servo, edit = design_robot(d)
-    return BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=edit,
+
+    def edits(ms) -> None:
+        if edit is not None:
+            edit(ms)
+        sensors(ms)
+
+    return BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=edit if sensors is None else edits,
                            timestep=d.timestep_s if timestep is None else timestep)
 
 

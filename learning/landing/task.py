@@ -179,19 +179,10 @@ def init_batch_worker(task: Task) -> None:
     nthread = None if multiprocessing.parent_process() is None else 1
     if task.design == "cat":
         sim = BatchLandingSim(task.robot, nthread=nthread, sensors=motion_sensors)
-    else:
-        from felis.learning.landing.designs import design_robot, get_design
-        from felis.spec import load_spec
+    else:  # another cat of the design study: its servos, paws and step, with the motion sensors
+        from felis.learning.landing.designs import design_sim
 
-        d = get_design(task.design)
-        spec, servo, edit = design_robot(d, load_spec(task.robot))
-
-        def sensors(ms) -> None:  # the design's model edit (its paws), then the motion sensors
-            if edit is not None:
-                edit(ms)
-            motion_sensors(ms)
-
-        sim = BatchLandingSim(spec=spec, servo=servo, nthread=nthread, sensors=sensors, timestep=d.timestep_s)
+        sim = design_sim(task.design, nthread=nthread, sensors=motion_sensors)
     _BATCH = (sim, task, SensorMotion(sim.batch.model))
 
 
