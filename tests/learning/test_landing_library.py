@@ -275,9 +275,9 @@ def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
     from felis.learning.landing.library_build import build_library, fibonacci_ups
 
     # on the 4 ms-paw cat (its 1 ms step: half the physics of the described cat's, the same machinery)
-    kw = dict(heights=(1.0,), grid=30, probes=50, max_tilt_deg=60.0, generations=1, population=2, restarts=0,
+    kw = dict(heights=(1.0,), grid=20, probes=36, max_tilt_deg=60.0, generations=1, population=2, restarts=0,
               workers=1, robust_generations=1, fill_generations=1, design="4ms-paw")
-    assert len(fibonacci_ups(30, 60.0)) >= 2
+    assert len(fibonacci_ups(20, 60.0)) >= 2
     one = build_library(**kw, workdir=tmp_path / "a")
     where = tmp_path / "a" / "1m"
     assert {p.name for p in where.iterdir()} == {"optimum.jsonl", "robust.npz", "probes.npy", "fill.npz",
@@ -286,14 +286,14 @@ def test_a_build_resumed_from_its_checkpoints_equals_one_run(tmp_path):
         assert len(f["holes"]) > 0  # so the fill stage ran on something
     res = np.load(where / "probes.npy")  # (probes, candidates): 1 lands, 0 does not, -1 not tried (too far apart)
     tried = np.argwhere(res >= 0)
-    assert len(tried) > 8 and res.shape[1] > 2 * len(fibonacci_ups(30, 60.0))  # the fills' columns too
+    assert len(tried) > 8 and res.shape[1] > 2 * len(fibonacci_ups(20, 60.0))  # the fills' columns too
     res[tuple(tried[len(tried) // 2:].T)] = -1  # as if killed halfway through the probes
     np.save(where / "probes.npy", res)
     again = build_library(**kw, workdir=tmp_path / "a", resume=True)
     s, t = one.shelves[0], again.shelves[0]
     assert np.array_equal(s.x, t.x) and np.array_equal(s.lands, t.lands) and np.array_equal(s.landed, t.landed)
-    assert s.lands.shape == (len(fibonacci_ups(50, 60.0)), 2 * len(s.up))
-    assert len(s.up) > len(fibonacci_ups(30, 60.0))  # twins or fills beside the grid's entries
+    assert s.lands.shape == (len(fibonacci_ups(36, 60.0)), 2 * len(s.up))
+    assert len(s.up) > len(fibonacci_ups(20, 60.0))  # twins or fills beside the grid's entries
     fresh = build_library(**kw)  # no checkpoints at all: the same library
     assert np.array_equal(fresh.shelves[0].x, s.x) and np.array_equal(fresh.shelves[0].lands, s.lands)
     assert one.meta["design"] == "4ms-paw"
