@@ -33,10 +33,9 @@ from felis.errors import ParameterError
 from felis.learning.landing.designs import design_sim
 from felis.learning.landing.library import load_library
 from felis.learning.landing.library_build import tilts_deg, up_drop
+from felis.learning.landing.motion import DT  # the control tick (s): a motion's table has one row a tick
 from felis.learning.landing.optimum import evaluate
 from felis.learning.landing.policy import KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
-
-DT = 0.01  # the control tick (s)
 
 
 def fit(it: np.ndarray, v: np.ndarray, hidden: int, steps: int, seed: int = 0, lr: float = 1e-2):
