@@ -140,3 +140,32 @@ def test_cover_bench_command_writes_its_matrix_and_reads_another_runs_motions(tm
     other = subprocess.run([sys.executable, bench.__file__, "--n", "3", "--height", "3", "--radius", "1",
                             "--motions-from", str(COVER[0])], capture_output=True, text=True, timeout=300)
     assert other.returncode == 2 and "made on another library or height" in other.stderr
+
+
+def test_the_shipped_3m_cover_results_are_what_the_docs_say():
+    """docs/landing.md, from 3 m within 20°: some motion lands 96 and 86; the best 7 land 54 and 48, held out 26 and 25
+    (the nearest start among them the same); 21 held out 64 and 52, by the nearest start 58 and 44."""
+    from felis.learning.landing.library import DEFAULT_LIBRARY, _half, _sha256, drop_up, load_library
+    from felis.scenarios.drop import random_drops
+
+    bench = load_bench("landing_cover")
+    (a, la), (b, lb) = (bench.load_cover(ROOT / "learning" / "weights" / f"landing_cover-3m-seed{s}.json")
+                        for s in (0, 1))
+    cand_up = load_library().shelf(3.0).candidates()[0]
+    for doc, lands in ((a, la), (b, lb)):
+        assert doc["library_sha256"] == _sha256(DEFAULT_LIBRARY) and (doc["height_m"], doc["radius_deg"]) == (3, 20)
+        assert bench.max_cover(lands, 7)[0] == doc["max_cover"]["7"] and lands.shape == (100, len(cand_up))
+    assert [a["some_candidate_lands"], b["some_candidate_lands"], a["max_cover"]["7"], b["max_cover"]["7"]] == [
+        96, 86, 54, 48]
+    assert [a["fewest_for_goal"], b["fewest_for_goal"], a["goal"]] == [7, 8, 50]
+    held = {}
+    for motions_of, lands, seed in ((b, la, 0), (a, lb, 1)):
+        ups = np.stack([_half(drop_up(d))[0] for d in random_drops(100, seed=seed, heights=(3.0,))])
+        held[seed] = [(bench.cover_of(lands, motions_of["max_cover_motions"][k]),
+                       int(lands[np.arange(100), bench.nearest_choice(ups, cand_up, motions_of["max_cover_motions"][k])]
+                           .sum())) for k in ("7", "21")]
+    assert held == {0: [(26, 26), (64, 58)], 1: [(25, 25), (52, 44)]}
+    assert b["held_out"]["cover"]["7"] == 25 and b["held_out"]["nearest"]["21"] == 44  # the command's own count
+    docs = " ".join((ROOT / "docs" / "landing.md").read_text().split())
+    assert "| held out: the other seed's best 7 / 21 land | 26 / 64 | 25 / 52 |" in docs
+    assert "from 3 m seven land 54 and 48, held out 25 and 26" in " ".join((ROOT / "README.md").read_text().split())
