@@ -150,8 +150,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    if args.n < 1 or args.rounds < 0:
-        ap.error("--n must be ≥ 1 and --rounds ≥ 0")
+    if args.n < 1 or args.rounds < 0 or args.hidden < 1 or args.steps < 0:
+        ap.error("--n and --hidden must be ≥ 1, --rounds and --steps ≥ 0")
     import torch
 
     torch.set_num_threads(1)  # small nets: threads cost more than they give

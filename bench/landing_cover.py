@@ -164,13 +164,21 @@ def main() -> None:
     args = ap.parse_args()
     if not 0 < args.radius <= 180:
         ap.error(f"--radius must be in (0, 180], got {args.radius:g}")
+    if args.n < 1 or min(args.k) < 0:
+        ap.error(f"--n must be ≥ 1 and every --k ≥ 0, got --n {args.n} and --k {' '.join(map(str, args.k))}")
 
     library_file = design_library(args.design) or DEFAULT_LIBRARY
     lib = load_library(library_file)
     shelf = lib.shelf(args.height)
     sigma = shelf.sigma_deg or lib.sigma_deg
     if args.motions_from is not None:  # checked before the rollouts
-        other = load_cover(args.motions_from)[0]
+        if not args.motions_from.is_file():
+            ap.error(f"--motions-from {args.motions_from}: no such file")
+        try:
+            other = load_cover(args.motions_from)[0]
+        except (OSError, ValueError, KeyError, IndexError) as e:
+            ap.error(f"--motions-from {args.motions_from}: not a cover results file written by --out "
+                     f"({type(e).__name__}: {e})")
         if other.get("library_sha256") != _sha256(Path(library_file)) or other.get("height_m") != args.height:
             ap.error(f"--motions-from {args.motions_from}: made on another library or height")
     drops = random_drops(args.n, seed=args.seed, heights=(args.height,))

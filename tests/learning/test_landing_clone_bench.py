@@ -52,7 +52,7 @@ def test_clone_bench_runs_one_motion():
     assert m["open_loop_landed"] is True and m["ticks"] == 145 and np.isfinite(m["rms_rad_s"])
     assert res["clone_landed"] == int(m["clone_landed"]) and res["motions_tried"] == 1 + len(res["skipped_not_landing"])
     bad = subprocess.run([sys.executable, str(BENCH), "--n", "0"], capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "--n must be ≥ 1" in bad.stderr
+    assert bad.returncode == 2 and "--n and --hidden must be ≥ 1" in bad.stderr
 
 
 def test_the_shipped_clone_runs_are_what_the_docs_say():

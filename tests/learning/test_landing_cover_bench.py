@@ -140,6 +140,11 @@ def test_cover_bench_command_writes_its_matrix_and_reads_another_runs_motions(tm
     other = subprocess.run([sys.executable, bench.__file__, "--n", "3", "--height", "3", "--radius", "1",
                             "--motions-from", str(COVER[0])], capture_output=True, text=True, timeout=300)
     assert other.returncode == 2 and "made on another library or height" in other.stderr
+    for bad, says in (("missing.json", "no such file"), (str(COVER[0].parent / "landing_clone-1m.json"),
+                                                       "not a cover results file")):
+        r = subprocess.run([sys.executable, bench.__file__, "--n", "1", "--motions-from", bad], capture_output=True,
+                           text=True, timeout=300)
+        assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 def test_the_shipped_3m_cover_results_are_what_the_docs_say():
