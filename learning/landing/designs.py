@@ -19,7 +19,9 @@ on "the described cat" before then is its); the study's other designs (``fast-li
 ``soft-rubber-paw``) change that cat, since the study was measured on it, and run the library with the vote taken
 on it (``landing_library_4ms-paw.json``). ``soft-rubber-paw`` (3 ms) is the contact the 2 ms paw made before
 `paw_edit` gave the feet priority over the floor (MuJoCo averaged its 2 ms with the floor's 4 ms): every "rubber
-paw" figure measured before 2026-11-28 is its, bit for bit.
+paw" figure measured before 2026-11-28 is its, bit for bit. ``cat+fast-limbs``, ``cat+strong-spine`` and
+``cat+6V`` make the same servo changes to the described cat. A design's ``base`` is the cat it changes, which the
+study reads it against.
 
 Masses stay the model's: an XC330 is 5 g heavier than an XL330 (23 g against 18 g), 1 % of the cat per
 servo, which the study ignores. `DESIGNS` holds the study's designs, `design_sim` builds the batch simulation
@@ -55,6 +57,7 @@ class Design:
     paw_tau_s: float | None = None  # the feet's contact time constant (None: the model's)
     timestep_s: float | None = None  # its physics step (None: the model's)
     library: str | None = None  # its own motion library (a votes file in learning/weights/): --policy library on it
+    base: str = "cat"  # the design it changes, which the study reads it against (same drops, same run)
 
     def check(self, spec: RobotSpec) -> None:
         for group, model in self.servos.items():
@@ -86,20 +89,26 @@ class Design:
 
 
 # The 4 ms-paw cat at 1 ms: the cat as described until 2026-11-29 and the base of the design study (measured on it).
-_OLD = {"paw_tau_s": 0.004, "timestep_s": 0.001, "library": "landing_library_4ms-paw.json"}
+_OLD = {"paw_tau_s": 0.004, "timestep_s": 0.001, "library": "landing_library_4ms-paw.json", "base": "4ms-paw"}
+_FAST_LIMBS = {"legs": "XL330-M077-T", "tail": "XL330-M077-T"}
+_STRONG_SPINE = {"spine": "XC330-M181-T"}
 
 DESIGNS: dict[str, Design] = {d.name: d for d in (
     Design("cat", "as described: XL330-M288-T everywhere at 5 V, moulded-rubber paws τ = 2 ms, 0.5 ms step"),
     Design("4ms-paw", "the cat as described until 2026-11-29: 4 ms paws (k ≈ 15 kN/m), 1 ms step", **_OLD),
-    Design("fast-limbs", "4ms-paw with XL330-M077-T on legs and tail (383 rpm, 0.215 N·m)",
-           servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T"}, **_OLD),
-    Design("strong-spine", "4ms-paw with XC330-M181-T on the spine (129 rpm, 0.60 N·m)",
-           servos={"spine": "XC330-M181-T"}, **_OLD),
-    Design("fast-limbs+strong-spine", "4ms-paw with both of the above",
-           servos={"legs": "XL330-M077-T", "tail": "XL330-M077-T", "spine": "XC330-M181-T"}, **_OLD),
+    Design("fast-limbs", "4ms-paw with XL330-M077-T on legs and tail (383 rpm, 0.215 N·m)", servos=_FAST_LIMBS,
+           **_OLD),
+    Design("strong-spine", "4ms-paw with XC330-M181-T on the spine (129 rpm, 0.60 N·m)", servos=_STRONG_SPINE,
+           **_OLD),
+    Design("fast-limbs+strong-spine", "4ms-paw with both of the above", servos={**_FAST_LIMBS, **_STRONG_SPINE},
+           **_OLD),
     Design("6V", "4ms-paw with XL330-M288-T at its 6 V maximum (×1.2 speed and stall torque)", volts=6.0, **_OLD),
     Design("soft-rubber-paw", "4ms-paw with soft rubber paws (Shore ≈ 30A), τ = 3 ms (k ≈ 27 kN/m)",
            **{**_OLD, "paw_tau_s": 0.003}),
+    # the same changes of the described cat (2 ms paws at 0.5 ms), read against it
+    Design("cat+fast-limbs", "cat with XL330-M077-T on legs and tail (383 rpm, 0.215 N·m)", servos=_FAST_LIMBS),
+    Design("cat+strong-spine", "cat with XC330-M181-T on the spine (129 rpm, 0.60 N·m)", servos=_STRONG_SPINE),
+    Design("cat+6V", "cat with XL330-M288-T at its 6 V maximum (×1.2 speed and stall torque)", volts=6.0),
 )}
 
 

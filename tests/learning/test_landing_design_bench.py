@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from conftest import load_bench
+
 BENCH = Path(__file__).resolve().parents[2] / "bench" / "landing_design.py"
 
 
@@ -26,10 +28,31 @@ def test_design_bench_writes_each_drop_and_resumes(tmp_path):
     shipped = json.loads((BENCH.parents[1] / "learning" / "weights" / "landing_optimum_4ms-paw-1m.json").read_text())
     assert cat["landed"] == shipped["drops"][0]["landed"]  # the anchor: the shipped search, drop by drop
     assert table["designs"]["4ms-paw"]["1m"] == {"landed": int(cat["landed"]), "of": 1}
+    six = next(x for x in rows if x["design"] == "6V")
+    assert table["designs"]["6V"]["1m"]["vs"] == {"of": 1, "gained": int(six["landed"] and not cat["landed"]),
+                                                   "lost": int(cat["landed"] and not six["landed"]), "p": 1.0}
     again = _bench("--drops", "1", "--designs", "6V,4ms-paw", "--heights", "1", "--out", str(out), "--resume")
     assert again.returncode == 0, again.stderr
     assert "drop 0:" not in again.stderr  # nothing searched again
     assert "6V" in again.stdout and "(shipped results, 4ms-paw)" in again.stdout
+    assert "1m against 4ms-paw on the 1 drops both have" in again.stdout
     assert len(out.read_text().splitlines()) == 2
     bad = _bench("--designs", "cat-x")
     assert bad.returncode != 0 and "unknown design 'cat-x'" in bad.stderr
+
+
+def test_a_design_is_read_against_its_base_by_a_sign_test():
+    bench = load_bench("landing_design")
+    base = [True, True, False, False, True, False, True, True]
+    other = [True, False, True, True, True, True, True, True]  # gains 2, 3, 5; loses 1
+    done = {**{("b", "1m", i): {"landed": x} for i, x in enumerate(base)},
+            **{("d", "1m", i): {"landed": x} for i, x in enumerate(other) if i != 7}}  # drop 7 not searched yet
+    got = bench.against(done, "d", "b", "1m", 8)
+    assert got == {"of": 7, "gained": 3, "lost": 1, "p": 0.625}  # 2 * P(X ≤ 1), X ~ B(4, 1/2) = 2 * 5/16
+    assert bench.against(done, "d", "b", "1m", 1) == {"of": 1, "gained": 0, "lost": 0, "p": 1.0}
+    from felis.learning.landing.designs import DESIGNS
+
+    assert {d.base for d in DESIGNS.values()} == {"cat", "4ms-paw"}
+    assert all(DESIGNS[d.base].base == d.base for d in DESIGNS.values())  # a base is its own
+    new = DESIGNS["cat+fast-limbs"]
+    assert new.servos == DESIGNS["fast-limbs"].servos and new.paw_tau_s is None and new.timestep_s is None
