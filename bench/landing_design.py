@@ -64,7 +64,7 @@ def against(done: dict, design: str, base: str, height: str, drops: int) -> dict
     gained = sum(done[(design, height, i)]["landed"] and not done[(base, height, i)]["landed"] for i in both)
     lost = sum(done[(base, height, i)]["landed"] and not done[(design, height, i)]["landed"] for i in both)
     p = binomtest(gained, gained + lost).pvalue if gained + lost else 1.0
-    return {"of": len(both), "gained": int(gained), "lost": int(lost), "p": round(float(p), 4)}
+    return {"of": len(both), "gained": int(gained), "lost": int(lost), "p": float(p)}
 
 
 def _job(job: tuple[str, str, list[int]]) -> list[dict]:

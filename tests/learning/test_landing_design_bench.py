@@ -56,3 +56,46 @@ def test_a_design_is_read_against_its_base_by_a_sign_test():
     assert all(DESIGNS[d.base].base == d.base for d in DESIGNS.values())  # a base is its own
     new = DESIGNS["cat+fast-limbs"]
     assert new.servos == DESIGNS["fast-limbs"].servos and new.paw_tau_s is None and new.timestep_s is None
+
+
+def _doc_rows() -> dict:
+    """The design-study tables of docs/landing.md: design → {height: (landed, (gained, lost) or None)}."""
+    import re
+
+    from felis.learning.landing.designs import DESIGNS
+
+    doc = (BENCH.parents[1] / "docs" / "landing.md").read_text()
+    rows = {}
+    for line in doc.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        m = re.fullmatch(r"`([^`]+)`", cells[0]) if len(cells) == 6 else None
+        if not m or m.group(1) not in DESIGNS:
+            continue
+        row = {}
+        for h, (n, vs) in zip(("1m", "3m"), (cells[2:4], cells[4:6]), strict=True):
+            pm = re.match(r"\+(\d+) −(\d+)", vs)
+            row[h] = (int(n.strip("*")), (int(pm.group(1)), int(pm.group(2))) if pm else None)
+        rows[m.group(1)] = row
+    return rows
+
+
+def test_the_design_tables_in_the_docs_are_the_shipped_runs():
+    bench = load_bench("landing_design")
+    from felis.learning.landing.designs import DESIGNS
+
+    done = {}
+    for line in (BENCH.parents[1] / "learning" / "weights" / "landing_design.jsonl").read_text().splitlines():
+        r = json.loads(line)
+        done[(r["design"], r["height"], r["i"])] = r
+    full = {d for d in DESIGNS if all((d, h, i) in done for h in ("1m", "3m") for i in range(100))}
+    rows = _doc_rows()
+    assert set(rows) == full and {"cat", "4ms-paw", "fast-limbs", "cat+fast-limbs"} <= full
+    for d, row in rows.items():
+        for h, (landed, vs) in row.items():
+            assert landed == sum(done[(d, h, i)]["landed"] for i in range(100)), (d, h)
+            base = DESIGNS[d].base
+            if base == d:
+                assert vs is None
+            else:
+                got = bench.against(done, d, base, h, 100)
+                assert vs == (got["gained"], got["lost"]), (d, h)
