@@ -167,9 +167,11 @@ def main() -> int:
                 v = row[h]["vs"]
                 print(f"{'':<26}{h} against {DESIGNS[d].base} on the {v['of']} drops both have: +{v['gained']} "
                       f"-{v['lost']} (two-sided sign test p = {v['p']:.2g})")
-    for key, what in (("shipped_anchor", f"(shipped results, {ANCHOR})"), ("ceiling_cat", "(cat's ceiling, warm)")):
-        counts = "".join(f"{table[key][h]:>7}/{args.drops:<4}" for h in heights)
-        print(f"{what:<26}{counts}")
+    for key, design, what in (("shipped_anchor", ANCHOR, f"(shipped results, {ANCHOR})"),
+                              ("ceiling_cat", "cat", "(cat's ceiling, warm)")):
+        if design in designs:  # a check beside the design it belongs to
+            counts = "".join(f"{table[key][h]:>7}/{args.drops:<4}" for h in heights)
+            print(f"{what:<26}{counts}")
     return 0
 
 

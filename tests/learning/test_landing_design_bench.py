@@ -99,3 +99,8 @@ def test_the_design_tables_in_the_docs_are_the_shipped_runs():
             else:
                 got = bench.against(done, d, base, h, 100)
                 assert vs == (got["gained"], got["lost"]), (d, h)
+    readme = " ".join((BENCH.parents[1] / "README.md").read_text().split())
+    n = {d: [rows[d][h][0] for h in ("1m", "3m")] for d in ("cat", "cat+fast-limbs", "cat+strong-spine")}
+    assert (f"the described cat lands {n['cat'][0]} at 1 m and {n['cat'][1]} at 3 m; the same cat with faster legs "
+            f"{n['cat+fast-limbs'][0]} and {n['cat+fast-limbs'][1]}, with a stronger spine "
+            f"{n['cat+strong-spine'][0]} and {n['cat+strong-spine'][1]}") in readme
