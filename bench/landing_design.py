@@ -35,12 +35,15 @@ import argparse
 import json
 import multiprocessing
 import os
+import re
 import sys
 import time
 from pathlib import Path
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "learning" / "weights"
 ANCHOR = "4ms-paw"  # the study's base (module doc)
+LATE_S = 0.05  # a failure this long after touchdown or later is not the impact's (`late`)
+_TOUCH = re.compile(r"touched the ground (\d+\.\d+) s after touchdown")  # the verdict's detail (`late`)
 SETTINGS = {"generations": 30, "population": 12, "restarts": 1, "seed": 0}  # the shipped optimum's
 
 
@@ -54,17 +57,71 @@ def ceiling(height: str) -> list[dict]:
     return json.loads((WEIGHTS / f"landing_optimum_warm-{height}.json").read_text())["drops"]
 
 
+def late(row: dict) -> bool:
+    """Whether a drop that did not land failed after touching down on its feet: no body but a foot on the floor in
+    the first `LATE_S` after touchdown (the impact), so what failed is holding the landing, not the turn or the
+    posture at touchdown. Read from the verdict's detail (`felis.scenarios.verdicts.landing_verdict`: "BODY touched
+    the ground T s after touchdown"); a drop that never touched down is not late."""
+    if row["landed"]:
+        return False
+    why = row["why"] or ""
+    if "never touched down" in why:
+        return False
+    m = _TOUCH.search(why)
+    return m is None or float(m.group(1)) >= LATE_S
+
+
 def against(done: dict, design: str, base: str, height: str, drops: int) -> dict:
     """``design`` read against ``base`` on the drops of the first ``drops`` that both have: drops it lands and the
     base does not (gained), the other way (lost), and the two-sided sign test of those (scipy's exact binomial
-    test, p = 1 with none either way)."""
+    test, p = 1 with none either way); ``lost_late``: of the lost drops, those it fails after touching down on its
+    feet (`late`)."""
     from scipy.stats import binomtest
 
     both = [i for i in range(drops) if (design, height, i) in done and (base, height, i) in done]
     gained = sum(done[(design, height, i)]["landed"] and not done[(base, height, i)]["landed"] for i in both)
-    lost = sum(done[(base, height, i)]["landed"] and not done[(design, height, i)]["landed"] for i in both)
-    p = binomtest(gained, gained + lost).pvalue if gained + lost else 1.0
-    return {"of": len(both), "gained": int(gained), "lost": int(lost), "p": float(p)}
+    lost = [i for i in both if done[(base, height, i)]["landed"] and not done[(design, height, i)]["landed"]]
+    p = binomtest(gained, gained + len(lost)).pvalue if gained + len(lost) else 1.0
+    return {"of": len(both), "gained": int(gained), "lost": len(lost), "p": float(p),
+            "lost_late": sum(late(done[(design, height, i)]) for i in lost)}
+
+
+def sag(done: dict, design: str, base: str, height: str, drops: int) -> dict:
+    """How far the cat sinks after touchdown, ``design`` against ``base``: each one's searched motion replayed on
+    its own cat, on the drops the base lands and the design loses after touching down on its feet (``lost_late``)
+    and on those both land (``both``); per set the median over its drops of the waist's lowest height from
+    touchdown to touchdown + 0.5 s (the verdict's window), as a share of the standing waist height (None for an
+    empty set). About a second of one core a drop."""
+    import numpy as np
+
+    from felis.learning.landing.designs import design_sim
+    from felis.learning.landing.optimum import evaluate
+    from felis.scenarios.drop import Drop
+    from felis.scenarios.verdicts import WINDOW_S
+
+    both = [i for i in range(drops) if (design, height, i) in done and (base, height, i) in done]
+    sets = {"lost_late": [i for i in both if done[(base, height, i)]["landed"] and late(done[(design, height, i)])],
+            "both": [i for i in both if done[(base, height, i)]["landed"] and done[(design, height, i)]["landed"]]}
+    out: dict = {k: {"drops": len(v)} for k, v in sets.items()}
+    for who in (base, design):
+        sim = design_sim(who, nthread=1)
+        try:
+            for k, idx in sets.items():
+                rows = [done[(who, height, i)] for i in idx]
+                got: list = []
+                if rows:
+                    evaluate(sim, [Drop(r["roll_deg"], r["pitch_deg"], r["yaw_deg"], r["height_m"]) for r in rows],
+                             np.array([r["motion_x"] for r in rows]), results=got)
+                low = []
+                for r in got:
+                    t, floor = np.asarray(r.truth.t), np.flatnonzero(np.asarray(r.truth.floor_body) >= 0)
+                    t0 = t[floor[0]]
+                    window = (t >= t0) & (t <= t0 + WINDOW_S)
+                    low.append(float(np.min(np.asarray(r.truth.waist_m)[window])) / sim.standing_waist_m)
+                out[k][who] = round(float(np.median(low)), 3) if low else None
+        finally:
+            sim.close()
+    return out
 
 
 def _job(job: tuple[str, str, list[int]]) -> list[dict]:
@@ -94,6 +151,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, metavar="FILE.jsonl", help="append each finished drop to this file")
     ap.add_argument("--resume", action="store_true", help="skip the drops already in --out")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--sag", action="store_true", help="also replay the motions of each design and its base to "
+                    "measure how far the cat sinks after touchdown (`sag`; about a second of one core a drop)")
     args = ap.parse_args()
     from felis.errors import ParameterError
 
@@ -151,6 +210,8 @@ def main() -> int:
             base = DESIGNS[d].base
             if base != d and base in designs:
                 row[h]["vs"] = against(done, d, base, h, args.drops)
+                if args.sag:
+                    row[h]["sag"] = sag(done, d, base, h, args.drops)
         table["designs"][d] = row
     table["shipped_anchor"] = {h: sum(r["landed"] for r in shipped(h)[:args.drops]) for h in heights}
     table["ceiling_cat"] = {h: sum(r["landed"] for r in ceiling(h)[:args.drops]) for h in heights}
@@ -166,7 +227,14 @@ def main() -> int:
             if "vs" in row[h]:
                 v = row[h]["vs"]
                 print(f"{'':<26}{h} against {DESIGNS[d].base} on the {v['of']} drops both have: +{v['gained']} "
-                      f"-{v['lost']} (two-sided sign test p = {v['p']:.2g})")
+                      f"-{v['lost']} (two-sided sign test p = {v['p']:.2g}); {v['lost_late']} of the lost fail "
+                      f"after touching down on its feet")
+            if "sag" in row[h]:
+                for k, what in (("lost_late", "those late losses"), ("both", "the drops both land")):
+                    g = row[h]["sag"][k]
+                    if g["drops"]:
+                        print(f"{'':<26}{h} lowest waist after touchdown, median share of standing, on {what} "
+                              f"({g['drops']}): {DESIGNS[d].base} {g[DESIGNS[d].base]:.2f}, {d} {g[d]:.2f}")
     for key, design, what in (("shipped_anchor", ANCHOR, f"(shipped results, {ANCHOR})"),
                               ("ceiling_cat", "cat", "(cat's ceiling, warm)")):
         if design in designs:  # a check beside the design it belongs to

@@ -38,6 +38,11 @@ experiment 1 are the ones nearest (180, 0, 0) and (90, 0, 0); everything else is
 library`` trains on whole-body samples that land (``learning/weights/landing_samples_library.json``, made by
 `felis.learning.landing.wholebody.make_library_samples`: per paper orientation, in order, the motion library's
 landing motion whose start is nearest it): a file of exactly 7 samples stands in the paper's order.
+
+``--design`` (default ``cat``, the described cat: 2 ms rubber paws at a 0.5 ms step) is the cat every training and
+every evaluation runs on (`felis.learning.landing.designs`); the study before 2026-11-29 ran on ``4ms-paw``, the cat
+as described until then. ``--samples library`` takes the library samples picked on that cat (`LIBRARY_SAMPLES`: a
+motion that lands a start on one cat need not land it on another).
 """
 
 from __future__ import annotations
@@ -53,6 +58,8 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / ".."))
 
+from felis.errors import ParameterError  # noqa: E402
+from felis.learning.landing.designs import get_design  # noqa: E402
 from felis.learning.landing.evaluate import run_drops, shipped_policy  # noqa: E402
 from felis.learning.landing.samples import TRAIN_HEIGHT_M, load_samples  # noqa: E402
 from felis.learning.landing.task import DEFAULT_SAMPLES  # noqa: E402
@@ -63,6 +70,8 @@ UNTRAINED = ((160.0, 20.0, 0.0), (-110.0, 10.0, 0.0), (110.0, -30.0, 0.0), (-160
 EXP1_ORIENTATIONS = (0, 3)  # samples 0 (180, 0, 0) and 3 (90, 0, 0): the paper's "orientation 1", and 4
 WHOLEBODY = str(Path(__file__).resolve().parents[1] / "learning" / "weights" / "landing_samples_wholebody.json")
 LIBRARY = str(Path(__file__).resolve().parents[1] / "learning" / "weights" / "landing_samples_library.json")
+# the library samples picked on each cat (`felis.learning.landing.wholebody.make_library_samples(..., design=...)`)
+LIBRARY_SAMPLES = {"4ms-paw": LIBRARY, "cat": LIBRARY.replace(".json", "_cat.json")}
 SAMPLES = {"spine": "", "wholebody": WHOLEBODY, "library": LIBRARY}
 FULL = {"population": 16, "exp1_generations": 30, "generations_simple": 15, "generations_complex": 10}
 QUICK = {"population": 4, "exp1_generations": 2, "generations_simple": 1, "generations_complex": 1}
@@ -73,8 +82,8 @@ def _train(cfg: TrainConfig, where: Path) -> dict:
     return train_landing(cfg, where / "policy.npz", where / "ckpt")
 
 
-def _landed(policy: str, drops: list[Drop], workers: int | None) -> dict:
-    out = run_drops(drops, policy, workers=workers)
+def _landed(policy: str, drops: list[Drop], workers: int | None, design: str = "cat") -> dict:
+    out = run_drops(drops, policy, workers=workers, design=design)
     return {"landed": sum(o.landed for o in out), "upright": sum(o.final_tilt_deg <= 30.0 for o in out),
             "of": len(out), "per_drop": [bool(o.landed) for o in out]}
 
@@ -96,10 +105,10 @@ def nearest_samples(samples, targets) -> tuple[int, ...]:
 
 
 def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_address: str | None = None,
-          samples_file: str = "") -> dict:
+          samples_file: str = "", design: str = "cat") -> dict:
     """``samples_file`` "" : the paper's spine-only samples (7 orientations); else a samples file whose 7
     samples nearest the paper's orientations (`nearest_samples`) are trained on, or, if it holds exactly 7, those
-    in order (sample k stands in for orientation k)."""
+    in order (sample k stands in for orientation k). ``design``: the cat everything runs on."""
     spine = load_samples(DEFAULT_SAMPLES)
     if samples_file:
         samples = load_samples(samples_file)
@@ -111,9 +120,10 @@ def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_ad
     train_drops = [Drop(*map(float, s.orientation), float(s.height_m)) for s in chosen]
     untrained = [Drop(*o, TRAIN_HEIGHT_M) for o in UNTRAINED]
     base = {"population": budget["population"], "workers": workers, "ray_address": ray_address,
-            "samples": samples_file}
+            "samples": samples_file, "design": design}
     exp1 = tuple(idx[i] for i in EXP1_ORIENTATIONS)
-    res: dict = {"budget": budget, "untrained": [list(o) for o in UNTRAINED], "samples": samples_file or "spine",
+    res: dict = {"design": design, "budget": budget, "untrained": [list(o) for o in UNTRAINED],
+                 "samples": samples_file or "spine",
                  "training": [list(map(float, s.orientation)) for s in chosen], "seeds": {}}
     for seed in seeds:
         t0 = time.perf_counter()
@@ -132,15 +142,15 @@ def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_ad
             where = tmp / f"s{seed}-exp2-{name}"
             _train(cfg, where)
             policy = str(where / "policy.npz")
-            row[f"exp2 {name}"] = _landed(policy, train_drops, workers)
-            row[f"exp3 {name}"] = _landed(policy, untrained, workers)
+            row[f"exp2 {name}"] = _landed(policy, train_drops, workers, design)
+            row[f"exp3 {name}"] = _landed(policy, untrained, workers, design)
         row["seconds"] = round(time.perf_counter() - t0, 1)
         res["seeds"][str(seed)] = row
         print(f"seed {seed}: {json.dumps({k: v for k, v in row.items() if k != 'seconds'})[:400]} "
               f"({row['seconds']} s)", file=sys.stderr, flush=True)
     baselines = ["passive", "rules"] + (["shipped"] if shipped_policy().is_file() else [])
-    res["baselines"] = {p: {"training": _landed(p, train_drops, workers), "untrained": _landed(p, untrained, workers)}
-                        for p in baselines}
+    res["baselines"] = {p: {"training": _landed(p, train_drops, workers, design),
+                            "untrained": _landed(p, untrained, workers, design)} for p in baselines}
     return res
 
 
@@ -182,12 +192,22 @@ def main(argv: list[str] | None = None) -> int:
                     help="the motion samples: the paper's spine-only ones (default), the whole-body ones "
                     "(learning/weights/landing_samples_wholebody.json; the 7 nearest the paper's orientations) or "
                     "the motion library's landing motions nearest them (landing_samples_library.json)")
+    ap.add_argument("--design", default="cat", help="the cat it all runs on (felis.learning.landing.designs; "
+                    "default cat, the described one)")
     args = ap.parse_args(argv)
+    samples_file = SAMPLES[args.samples]
+    try:
+        get_design(args.design)
+        if args.samples == "library":
+            samples_file = LIBRARY_SAMPLES[args.design]
+    except (ParameterError, KeyError) as e:
+        ap.error(str(e) if isinstance(e, ParameterError) else f"no library samples picked on {args.design} "
+                 f"(there are for {', '.join(LIBRARY_SAMPLES)}); make them with felis.learning.landing.wholebody."
+                 f"make_library_samples(FILE, design='{args.design}') and add them to LIBRARY_SAMPLES")
     budget = QUICK if args.quick else FULL
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="felis-landing-study-") as tmp:
-        res = study(args.seeds, budget, args.workers, Path(tmp), args.ray_address,
-                    SAMPLES[args.samples])
+        res = study(args.seeds, budget, args.workers, Path(tmp), args.ray_address, samples_file, args.design)
     res["seconds"] = round(time.perf_counter() - t0, 1)
     print(table(res))
     print(f"({res['seconds']} s)")

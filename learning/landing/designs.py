@@ -19,9 +19,9 @@ on "the described cat" before then is its); the study's other designs (``fast-li
 ``soft-rubber-paw``) change that cat, since the study was measured on it, and run the library with the vote taken
 on it (``landing_library_4ms-paw.json``). ``soft-rubber-paw`` (3 ms) is the contact the 2 ms paw made before
 `paw_edit` gave the feet priority over the floor (MuJoCo averaged its 2 ms with the floor's 4 ms): every "rubber
-paw" figure measured before 2026-11-28 is its, bit for bit. ``cat+fast-limbs``, ``cat+strong-spine`` and
-``cat+6V`` make the same servo changes to the described cat. A design's ``base`` is the cat it changes, which the
-study reads it against.
+paw" figure measured before 2026-11-28 is its, bit for bit. ``cat+fast-limbs``, ``cat+strong-spine``,
+``cat+fast-limbs+strong-spine`` and ``cat+6V`` make the same servo changes to the described cat. A design's
+``base`` is the cat it changes, which the study reads it against.
 
 Masses stay the model's: an XC330 is 5 g heavier than an XL330 (23 g against 18 g), 1 % of the cat per
 servo, which the study ignores. `DESIGNS` holds the study's designs, `design_sim` builds the batch simulation
@@ -108,6 +108,7 @@ DESIGNS: dict[str, Design] = {d.name: d for d in (
     # the same changes of the described cat (2 ms paws at 0.5 ms), read against it
     Design("cat+fast-limbs", "cat with XL330-M077-T on legs and tail (383 rpm, 0.215 N·m)", servos=_FAST_LIMBS),
     Design("cat+strong-spine", "cat with XC330-M181-T on the spine (129 rpm, 0.60 N·m)", servos=_STRONG_SPINE),
+    Design("cat+fast-limbs+strong-spine", "cat with both of the above", servos={**_FAST_LIMBS, **_STRONG_SPINE}),
     Design("cat+6V", "cat with XL330-M288-T at its 6 V maximum (×1.2 speed and stall torque)", volts=6.0),
 )}
 

@@ -155,10 +155,11 @@ def patch(d: Drop, deg: float) -> list[Drop]:
 
 def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: float = 1.0,
              outcomes: list | None = None, late_ticks: int = 0, wrap=None,
-             patch_deg: float = 0.0, patch_mm: float = 0.0) -> list[tuple[float, object]]:
+             patch_deg: float = 0.0, patch_mm: float = 0.0, results: list | None = None) -> list[tuple[float, object]]:
     """Score motions ``xs`` (B, 55) on ``drops`` (B) in one batch of ``sim`` (`BatchLandingSim`), with the legs'
     touchdown compliance (`felis.controllers.landing.LandingController`); ``outcomes``: a list that gets each
-    drop's `felis.learning.landing.evaluate.LandingOutcome` too.
+    drop's `felis.learning.landing.evaluate.LandingOutcome` too; ``results``: one that gets each drop's
+    `felis.sim.batch.BatchResult` (its recorded truth: e.g. the waist's height after touchdown).
 
     ``late_ticks`` k > 0: each motion is also run started 1…k ticks late (its velocity table shifted, the joints
     held meanwhile), as a servo bus's latency and a wall clock's jitter delay it on hardware; its score and
@@ -198,13 +199,15 @@ def evaluate(sim, drops: Sequence[Drop], xs: np.ndarray, touchdown_stiffness: fl
     every = list(drops) * (k + 1)
     policy = OpenLoop(tables) if wrap is None else wrap(OpenLoop(tables), len(tables))
     ctl = LandingBatch(sim.spec, [policy], touchdown_stiffness=touchdown_stiffness)
-    results = sim.batch.run(every, ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
+    batch = sim.batch.run(every, ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
     if outcomes is not None:
         from felis.learning.landing.evaluate import outcome_of
 
         outcomes += [outcome_of(d, "optimum", r, sim.standing_waist_m)
-                     for d, r in zip(drops[:n], results[:n], strict=True)]
-    scored = [score(r, sim.standing_waist_m) for r in results]
+                     for d, r in zip(drops[:n], batch[:n], strict=True)]
+    if results is not None:
+        results += batch[:n]
+    scored = [score(r, sim.standing_waist_m) for r in batch]
     blocks = len(scored) // n
     return [min((scored[i + s * n] for s in range(blocks)), key=lambda sv: sv[0]) for i in range(n)]
 

@@ -63,7 +63,7 @@ DEFAULT_PATH = Path(__file__).parents[1] / "weights" / "landing_samples_wholebod
 COMMAND = ("python -c \"from felis.learning.landing.wholebody import make_wholebody_samples; "
            "make_wholebody_samples('learning/weights/landing_samples_wholebody.json')\"")
 LIBRARY_COMMAND = ("python -c \"from felis.learning.landing.wholebody import make_library_samples; "
-                   "make_library_samples('learning/weights/landing_samples_library.json'{})\"")  # {}: the design
+                   "make_library_samples('learning/weights/{}'{})\"")  # the file's name, the design
 
 
 def sphere_orientations(n: int = N_ORIENTATIONS) -> list[tuple[float, float, float]]:
@@ -237,7 +237,7 @@ def make_library_samples(out_json: str | Path, library: str | Path | None = None
             progress(f"{p['target']} -> {s.orientation} ({p['angle_deg']:.1f}° away): landed {s.landed}")
     npz = out_json.with_suffix(".npz")
     doc = {"format": FORMAT, "version": VERSION, "kind": "whole-body",
-           "command": LIBRARY_COMMAND.format("" if design is None else f", design='{design}'"),
+           "command": LIBRARY_COMMAND.format(out_json.name, "" if design is None else f", design='{design}'"),
            **({} if design is None else {"design": design}),
            "source": f"the motion library {library.name}: per target the landing motion nearest by up-axis "
            "(learning/landing/wholebody.py, library_samples)", "library_made_by": lib.meta.get("made_by", ""),

@@ -69,3 +69,31 @@ def test_the_shipped_study_on_samples_that_land_says_what_the_docs_say():
         assert f["first_landed"] == fs["first_landed"] == [None, None]
         assert all(row[f"{e} {n}"]["landed"] == 0 for e in ("exp2", "exp3") for n in ("one-net", "simple-complex"))
     assert ahead == 4
+
+
+def test_the_library_samples_are_picked_on_the_cat_the_study_runs_on(bench):
+    """`--samples library` takes the samples picked on `--design`'s cat (a motion that lands a start on one cat
+    need not land it on another); each file says which cat, and the command that made it names the file."""
+    from pathlib import Path
+
+    from felis.learning.landing.samples import load_samples
+
+    assert set(bench.LIBRARY_SAMPLES) == {"cat", "4ms-paw"}
+    for design, path in bench.LIBRARY_SAMPLES.items():
+        doc = json.loads(Path(path).read_text())
+        assert doc["design"] == design and f"'learning/weights/{Path(path).name}'" in doc["command"]
+        got = load_samples(path)
+        assert len(got) == 7 and all(s.landed for s in got)
+        assert all(e["angle_to_target_deg"] <= 31 for e in doc["samples"])
+
+
+def test_a_study_on_an_unknown_design_or_one_without_samples_is_one_line():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).parents[2] / "bench" / "landing_study.py"
+    for argv, says in ((["--design", "cat-x"], "unknown design 'cat-x'"),
+                       (["--design", "6V", "--samples", "library"], "no library samples picked on 6V")):
+        r = subprocess.run([sys.executable, str(script), *argv], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -64,7 +64,7 @@ def test_library_samples_are_landing_motions_nearest_the_papers_orientations_in_
     made = make_library_samples(out, design="4ms-paw")
     doc = json.loads(out.read_text())
     assert len(made) == 7 and all(s.landed for s in made) and doc["design"] == "4ms-paw"
-    assert doc["command"] == LIBRARY_COMMAND.format(", design='4ms-paw'")
+    assert doc["command"] == LIBRARY_COMMAND.format("lib_samples.json", ", design='4ms-paw'")
     got = load_samples(out)
     for s, g, e, t in zip(made, got, doc["samples"], TRAINING_ORIENTATIONS, strict=True):
         assert tuple(e["stands_in_for"]) == t and g.orientation == s.orientation and g.landed
