@@ -88,6 +88,13 @@ def _landed(policy: str, drops: list[Drop], workers: int | None, design: str = "
             "of": len(out), "per_drop": [bool(o.landed) for o in out]}
 
 
+def _name(path: str) -> str:
+    """``path`` relative to the repository when it is in it (what a results file records), else as given."""
+    root = Path(__file__).resolve().parents[1]
+    p = Path(path).resolve()
+    return str(p.relative_to(root)) if p.is_relative_to(root) else path
+
+
 def nearest_samples(samples, targets) -> tuple[int, ...]:
     """For each target orientation (roll, pitch, yaw °), the index of the sample whose up-axis is nearest its
     up-axis (each sample used once): the whole-body samples that stand in for the paper's 7 orientations."""
@@ -123,7 +130,7 @@ def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_ad
             "samples": samples_file, "design": design}
     exp1 = tuple(idx[i] for i in EXP1_ORIENTATIONS)
     res: dict = {"design": design, "budget": budget, "untrained": [list(o) for o in UNTRAINED],
-                 "samples": samples_file or "spine",
+                 "samples": _name(samples_file) if samples_file else "spine",
                  "training": [list(map(float, s.orientation)) for s in chosen], "seeds": {}}
     for seed in seeds:
         t0 = time.perf_counter()

@@ -97,3 +97,22 @@ def test_a_study_on_an_unknown_design_or_one_without_samples_is_one_line():
                        (["--design", "6V", "--samples", "library"], "no library samples picked on 6V")):
         r = subprocess.run([sys.executable, str(script), *argv], capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_the_study_on_the_described_cat_in_the_docs_is_the_shipped_run(bench):
+    """docs/landing.md's table of the study on the described cat (2 ms paws at 0.5 ms, samples picked on it) is
+    `table` of `learning/weights/landing_study_library_cat.json` (made by `bench/landing_study.py --samples library
+    --design cat --json ...`), row for row, and its reading counts what the file holds."""
+    from pathlib import Path
+
+    root = Path(__file__).parents[2]
+    res = json.loads((root / "learning" / "weights" / "landing_study_library_cat.json").read_text())
+    assert res["design"] == "cat" and res["samples"] == "learning/weights/landing_samples_library_cat.json"
+    assert res["budget"] == bench.FULL and sorted(res["seeds"]) == ["0", "1", "2"]
+    doc = (root / "docs" / "landing.md").read_text()
+    assert bench.table(res) in doc
+    ahead = sum(a[-1] > b[-1] for row in res["seeds"].values()
+                for a, b in zip(row["exp1 f+similarity"]["best_f"], row["exp1 f"]["best_f"], strict=True))
+    landed = sum(row[f"{e} {n}"]["landed"] for row in res["seeds"].values() for e in ("exp2", "exp3")
+                 for n in ("one-net", "simple-complex"))
+    assert f"<!-- study-cat: similarity ahead {ahead} of 6, nets landed {landed} -->" in doc
