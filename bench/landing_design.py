@@ -8,10 +8,12 @@ restart; every drop seeded by its index as in the shipped run) on the first ``--
 study's base, the 4 ms-paw cat at 1 ms (``4ms-paw``: the cat as described until 2026-11-29, on which the study was
 measured), runs in the same run: the anchor every design is read against (same drops, same machine); the shipped
 results for those drops are printed beside it as a check. ``cat`` (the cat as described now: 2 ms paws at 0.5 ms)
-is the base of ``cat+fast-limbs``, ``cat+strong-spine`` and ``cat+6V``, the same servo changes made to it; its
+is the base of the ``cat+…`` designs, the same servo changes made to it; its
 shipped ceiling (the optimum warm-started from the library) on those drops is printed beside it. Each design named
 with its base (`Design.base`) is read against it drop by drop: the drops it lands and the base does not (+), the
-other way (−), and a two-sided sign test of those (`against`).
+other way (−), and a two-sided sign test of those (`against`), with how many of the lost drops it loses after
+touching down on its feet (`late`); ``--sag`` also replays both cats' motions and measures how far the waist sinks
+after touchdown (`sag`).
 
 Each ``--chunk`` of drops of a design and height is one job in a process pool of ``--workers`` (one thread
 each), searched as one batch; jobs are ordered chunk by chunk so a run cut short still compares every design on
@@ -23,7 +25,9 @@ nothing left to search it prints the table of the file).
     python bench/landing_design.py --drops 100 --out learning/weights/landing_design.jsonl --resume \\
         --designs 4ms-paw,fast-limbs,strong-spine,fast-limbs+strong-spine,6V,soft-rubber-paw  # the table shipped
     python bench/landing_design.py --drops 100 --out learning/weights/landing_design.jsonl --resume \\
-        --designs cat,cat+fast-limbs,cat+strong-spine  # the same study on the described cat (2 ms paws, 0.5 ms)
+        --designs cat,cat+fast-limbs,cat+strong-spine,cat+fast-limbs+strong-spine,cat+6V  # on the described cat
+    python bench/landing_design.py --drops 100 --out learning/weights/landing_design.jsonl --resume \\
+        --designs cat,cat+fast-limbs --sag  # why faster legs lose from 3 m (the docs' sag table)
 
 A drop that does not land uses the whole budget, 733 rollouts: about 50 s of one core of the 2-core machine
 searched alone, less in a chunk. The default, 30 drops × every design × 2 heights, takes hours on 2 cores.

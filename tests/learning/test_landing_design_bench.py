@@ -135,10 +135,17 @@ def test_the_design_tables_in_the_docs_are_the_shipped_runs():
                 got = bench.against(done, d, base, h, 100)
                 assert vs == (got["gained"], got["lost"]), (d, h)
     readme = " ".join((BENCH.parents[1] / "README.md").read_text().split())
-    n = {d: [rows[d][h][0] for h in ("1m", "3m")] for d in ("cat", "cat+fast-limbs", "cat+strong-spine")}
+    n = {d: [rows[d][h][0] for h in ("1m", "3m")]
+         for d in ("cat", "cat+fast-limbs", "cat+strong-spine", "cat+fast-limbs+strong-spine", "cat+6V")}
     assert (f"the described cat lands {n['cat'][0]} at 1 m and {n['cat'][1]} at 3 m; the same cat with faster legs "
             f"{n['cat+fast-limbs'][0]} and {n['cat+fast-limbs'][1]}, with a stronger spine "
-            f"{n['cat+strong-spine'][0]} and {n['cat+strong-spine'][1]}") in readme
+            f"{n['cat+strong-spine'][0]} and {n['cat+strong-spine'][1]}, with both "
+            f"{n['cat+fast-limbs+strong-spine'][0]} and {n['cat+fast-limbs+strong-spine'][1]}, at 6 V "
+            f"{n['cat+6V'][0]} and {n['cat+6V'][1]}") in readme
+    late = bench.against(done, "cat+fast-limbs", "cat", "3m", 100)
+    assert f"{late['lost_late']} of the {late['lost']} drops faster legs lose from 3 m are lost on their feet" in readme
+    assert (f"of the drops the cat lands and the faster legs lose, {late['lost_late']} of {late['lost']} are lost "
+            "after touchdown on the feet") in " ".join((BENCH.parents[1] / "docs" / "landing.md").read_text().split())
 
 
 def test_faster_weaker_legs_sink_further_after_a_3m_touchdown():
