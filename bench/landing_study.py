@@ -202,15 +202,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--design", default="cat", help="the cat it all runs on (felis.learning.landing.designs; "
                     "default cat, the described one)")
     args = ap.parse_args(argv)
-    samples_file = SAMPLES[args.samples]
     try:
         get_design(args.design)
-        if args.samples == "library":
-            samples_file = LIBRARY_SAMPLES[args.design]
-    except (ParameterError, KeyError) as e:
-        ap.error(str(e) if isinstance(e, ParameterError) else f"no library samples picked on {args.design} "
-                 f"(there are for {', '.join(LIBRARY_SAMPLES)}); make them with felis.learning.landing.wholebody."
-                 f"make_library_samples(FILE, design='{args.design}') and add them to LIBRARY_SAMPLES")
+    except ParameterError as e:
+        ap.error(str(e))
+    samples_file = SAMPLES[args.samples]
+    if args.samples == "library":
+        if args.design not in LIBRARY_SAMPLES:
+            ap.error(f"no library samples picked on {args.design} (there are for {', '.join(LIBRARY_SAMPLES)}); "
+                     f"make them with felis.learning.landing.wholebody.make_library_samples(FILE, "
+                     f"design='{args.design}') and add them to LIBRARY_SAMPLES")
+        samples_file = LIBRARY_SAMPLES[args.design]
     budget = QUICK if args.quick else FULL
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="felis-landing-study-") as tmp:
