@@ -68,14 +68,17 @@ def _complete_prefix(buf: bytes, size: int) -> tuple[int, bool]:
     """Length of the run of whole records after the magic, and whether the file ends properly.
 
     An MCAP record is ``opcode (1 byte) | length (uint64 LE) | body``. A crash can cut the last
-    record short; everything before it is intact because records are written whole and in order.
+    record short; everything before it is intact because records are written in order. The one record
+    written out of order is the chunk being filled: the SDK's writer puts placeholders in its header, streams
+    the data after it, then goes back and overwrites the header field by field (`_whole_chunk`), so a kill can
+    leave a chunk whose bytes are all there but whose header is half written; it ends the prefix too.
     """
     pos = len(MAGIC)
     while pos + 9 <= size:
         opcode = buf[pos]
         (length,) = struct.unpack_from("<Q", buf, pos + 1)
         end = pos + 9 + length
-        if end > size:
+        if end > size or (opcode == 0x06 and not _whole_chunk(buf, pos + 9, length)):
             break
         pos = end
         if opcode == 0x02:  # Footer: a finished file ends with the magic again
@@ -83,6 +86,28 @@ def _complete_prefix(buf: bytes, size: int) -> tuple[int, bool]:
                 return pos + len(MAGIC), True
             return pos, False
     return pos, False
+
+
+_CHUNK_FIXED = struct.Struct("<QQQII")  # message start and end time, uncompressed size and CRC, compression length
+_UNSET = 2**64 - 1  # the writer's placeholder for a size it has not yet written
+
+
+def _whole_chunk(buf: bytes, body: int, length: int) -> bool:
+    """Whether the Chunk record whose body starts at ``body`` has a finished header.
+
+    The body is ``start (u64) | end (u64) | uncompressed size (u64) | CRC (u32) | compression (u32 length +
+    bytes) | compressed size (u64) | data``. The writer's placeholders are ``2**64 - 1`` for the record length
+    and all three sizes; it overwrites them in file order, the compressed size last, so the header is finished
+    exactly when the compressed size accounts for the rest of the record (and the uncompressed size is set).
+    """
+    if length < _CHUNK_FIXED.size + 8:
+        return False
+    *_, uncompressed, _crc, name_len = _CHUNK_FIXED.unpack_from(buf, body)
+    head = _CHUNK_FIXED.size + name_len + 8
+    if uncompressed == _UNSET or head > length:
+        return False
+    (compressed,) = struct.unpack_from("<Q", buf, body + head - 8)
+    return head + compressed == length
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -112,7 +137,7 @@ def _records(path: Path) -> tuple[list, bool]:
             out.append(rec)
     except EndOfFile:
         pass  # the normal end of the intact prefix of a cut-off file
-    except (McapError, struct.error, UnicodeDecodeError, ValueError, RuntimeError):
+    except (McapError, struct.error, UnicodeDecodeError, ValueError, RuntimeError, OverflowError):
         complete = False  # garbage inside whole records: keep what was read before it
     return out, complete
 

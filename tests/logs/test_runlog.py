@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 import subprocess
 import sys
 import textwrap
@@ -20,6 +21,7 @@ from mcap.writer import Writer
 
 from felis.errors import LogError
 from felis.hal import Command, Faults, Imu, State
+from felis.logs.mcap import MAGIC
 from felis.logs.messages import as_dict
 from felis.logs.plot import plot_log
 from felis.logs.reader import LogData, log_info, protobuf_class, read_log
@@ -251,6 +253,58 @@ def test_cut_anywhere_reads_a_prefix_or_raises_log_error(tmp_path, spec):
         np.testing.assert_array_equal(data.q, np.reshape(expected, (last, spec.n)))
     assert last == 20
     assert read_log(path).complete is True
+
+
+def _chunks(raw: bytes) -> list[tuple[int, int]]:
+    """(offset, record end) of each Chunk record of a whole MCAP file."""
+    out, pos = [], len(MAGIC)
+    while pos + 9 <= len(raw):
+        (length,) = struct.unpack_from("<Q", raw, pos + 1)
+        if raw[pos] == 0x06:
+            out.append((pos, pos + 9 + length))
+        pos += 9 + length
+    return out
+
+
+def test_killed_while_a_chunk_header_is_overwritten_reads_the_chunks_before(tmp_path, spec):
+    """The SDK's writer streams a chunk after a placeholder header (``2**64 - 1`` for the record length and the
+    three sizes, 0 for the times) and overwrites the header field by field when the chunk is done. A kill at any
+    byte of that overwrite leaves every byte of the chunk in the file under a half-written header (seen once in
+    CI, as an OverflowError from the mcap reader): the reader keeps the chunks before it and says the log is cut."""
+    path = tmp_path / "full.mcap"
+    with RunLog(path, spec, meta={"scenario": "unit"}) as log:
+        for i in range(30):
+            log.state(make_state(i, spec.n))
+            if i % 10 == 9:
+                log.flush()  # a chunk per ten ticks
+        log.close()
+    raw = path.read_bytes()
+    chunks = _chunks(raw)
+    assert len(chunks) >= 3
+    cut_path = tmp_path / "cut.mcap"
+    for k, (start, end) in enumerate(chunks):
+        before = 0
+        if k:
+            cut_path.write_bytes(raw[:chunks[k - 1][1]])
+            before = len(read_log(cut_path).t)
+        body = start + 9
+        (name_len,) = struct.unpack_from("<I", raw, body + 24 + 4)
+        head = 9 + 28 + 4 + name_len + 8
+        placeholder = bytearray(raw[start:start + head])
+        struct.pack_into("<Q", placeholder, 1, 2**64 - 1)
+        struct.pack_into("<QQQI", placeholder, 9, 0, 0, 2**64 - 1, 2**32 - 1)
+        struct.pack_into("<Q", placeholder, head - 8, 2**64 - 1)
+        for done in range(head):  # the first ``done`` bytes of the header overwritten
+            header = raw[start:start + done] + bytes(placeholder[done:])
+            cut_path.write_bytes(raw[:start] + header + raw[start + head:end])
+            if k == 0:  # the chunk with /meta, written when the log opens
+                with pytest.raises(LogError, match="meta"):
+                    read_log(cut_path)
+                continue
+            data = read_log(cut_path)
+            assert data.complete is False and len(data.t) == before, (k, done)
+        cut_path.write_bytes(raw[:end])  # the header finished: the chunk is read
+        assert len(read_log(cut_path).t) > before or k == 0
 
 
 # ---------------------------------------------------------------------------------------------
