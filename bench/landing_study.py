@@ -47,7 +47,8 @@ motion that lands a start on one cat need not land it on another).
 ``--fitness landing`` ranks every training by our landing score (`felis.learning.landing.nets.landing_score`, 0–5,
 whose optimum is a landing) instead of the paper's eq. 9 × upright, whose optimum on this cat is a roll back upright
 (docs/landing.md, "Ten times the budget for experiment 1"); the experiments, budgets and baselines are unchanged, and
-experiment 1's "best" rows give the best landing score.
+experiment 1's "best" rows give the best landing score. ``--exp1-only --exp1-generations N`` runs experiment 1
+alone at another budget (the paper ran 1 000 generations; 300 take about 13 min a seed on 2 cores).
 """
 
 from __future__ import annotations
@@ -118,11 +119,12 @@ def nearest_samples(samples, targets) -> tuple[int, ...]:
 
 
 def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_address: str | None = None,
-          samples_file: str = "", design: str = "cat", fitness: str = "eq9") -> dict:
+          samples_file: str = "", design: str = "cat", fitness: str = "eq9", exp2: bool = True) -> dict:
     """``samples_file`` "" : the paper's spine-only samples (7 orientations); else a samples file whose 7
     samples nearest the paper's orientations (`nearest_samples`) are trained on, or, if it holds exactly 7, those
     in order (sample k stands in for orientation k). ``design``: the cat everything runs on. ``fitness``: what
-    every training ranks by (`felis.learning.landing.config.FITNESSES`)."""
+    every training ranks by (`felis.learning.landing.config.FITNESSES`). ``exp2`` False: experiment 1 only (no
+    experiments 2 and 3, no baselines)."""
     spine = load_samples(DEFAULT_SAMPLES)
     if samples_file:
         samples = load_samples(samples_file)
@@ -148,8 +150,10 @@ def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_ad
             r = _train(cfg, tmp / f"s{seed}-exp1-{name}")
             row[f"exp1 {name}"] = {"first_landed": r["generations_to_first_landing"]["simple"],
                                    "first_upright": r["generations_to_first_success"]["simple"],
-                                   "best_f": [h["best_f"] for h in r["simple"]]}
-        for name, one in (("simple-complex", False), ("one-net", True)):
+                                   "best_f": [h["best_f"] for h in r["simple"]],
+                                   "best_landed": [sum(h["best_landed"]) for h in r["simple"]],
+                                   "rollouts_landed": [sum(h["n_landed"]) for h in r["simple"]]}
+        for name, one in (("simple-complex", False), ("one-net", True)) if exp2 else ():
             cfg = TrainConfig(seed=seed, generations_simple=budget["generations_simple"],
                               generations_complex=budget["generations_complex"], one_net=one,
                               orientations=idx if samples_file else (), **base)
@@ -162,7 +166,7 @@ def study(seeds: list[int], budget: dict, workers: int | None, tmp: Path, ray_ad
         res["seeds"][str(seed)] = row
         print(f"seed {seed}: {json.dumps({k: v for k, v in row.items() if k != 'seconds'})[:400]} "
               f"({row['seconds']} s)", file=sys.stderr, flush=True)
-    baselines = ["passive", "rules"] + (["shipped"] if shipped_policy().is_file() else [])
+    baselines = ["passive", "rules"] + (["shipped"] if shipped_policy().is_file() else []) if exp2 else []
     res["baselines"] = {p: {"training": _landed(p, train_drops, workers, design),
                             "untrained": _landed(p, untrained, workers, design)} for p in baselines}
     return res
@@ -181,11 +185,16 @@ def table(res: dict) -> str:
         rows.append(f"| (1) {name}: generations to first landing, orientation 1 / 4 | {' | '.join(cells)} |")
         cells = [_cell(res["seeds"][s][f"exp1 {name}"]["first_upright"]) for s in seeds]
         rows.append(f"| (1) {name}: generations to first upright end, orientation 1 / 4 | {' | '.join(cells)} |")
-        for g in sorted({min(10, n), n} if (n := res["budget"]["exp1_generations"]) else ()):
+        for g in sorted({g for g in (10, 30, 100) if g < n} | {n} if (n := res["budget"]["exp1_generations"]) else ()):
             cells = [" / ".join(f"{c[g - 1]:.2f}" for c in res["seeds"][s][f"exp1 {name}"]["best_f"]) for s in seeds]
             rows.append(f"| (1) {name}: best {best} after {g} generations, orientation 1 / 4 | {' | '.join(cells)} |")
+        for key, what in (("best_landed", "generations whose best lands"), ("rollouts_landed", "rollouts that land")):
+            if all(key in res["seeds"][s][f"exp1 {name}"] for s in seeds):  # recorded since 2026-11-29
+                cells = [_cell(res["seeds"][s][f"exp1 {name}"][key]) for s in seeds]
+                rows.append(f"| (1) {name}: {what}, orientation 1 / 4 | {' | '.join(cells)} |")
+    exp2 = all("exp2 one-net" in res["seeds"][s] for s in seeds)
     for exp, what, drops in (("exp2", "7 training orientations", "training"),
-                             ("exp3", "4 untrained orientations", "untrained")):
+                             ("exp3", "4 untrained orientations", "untrained")) if exp2 else ():
         for name in ("one-net", "simple-complex"):
             cells = [f"{res['seeds'][s][f'{exp} {name}']['landed']} ({res['seeds'][s][f'{exp} {name}']['upright']})"
                      for s in seeds]
@@ -209,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
                     "the motion library's landing motions nearest them (landing_samples_library.json)")
     ap.add_argument("--fitness", choices=FITNESSES, default="eq9",
                     help="what the trainings rank by: the paper's eq. 9 × upright (default) or our landing score")
+    ap.add_argument("--exp1-only", action="store_true", help="experiment 1 only (no experiments 2 and 3, no baselines)")
+    ap.add_argument("--exp1-generations", type=int,
+                    help=f"experiment 1's generations (default {FULL['exp1_generations']}; the paper ran 1000)")
     ap.add_argument("--design", default="cat", help="the cat it all runs on (felis.learning.landing.designs; "
                     "default cat, the described one)")
     args = ap.parse_args(argv)
@@ -223,11 +235,15 @@ def main(argv: list[str] | None = None) -> int:
                      f"make them with felis.learning.landing.wholebody.make_library_samples(FILE, "
                      f"design='{args.design}') and add them to LIBRARY_SAMPLES")
         samples_file = LIBRARY_SAMPLES[args.design]
-    budget = QUICK if args.quick else FULL
+    budget = dict(QUICK if args.quick else FULL)
+    if args.exp1_generations is not None:
+        if args.exp1_generations < 1:
+            ap.error(f"--exp1-generations must be at least 1, got {args.exp1_generations}")
+        budget["exp1_generations"] = args.exp1_generations
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="felis-landing-study-") as tmp:
         res = study(args.seeds, budget, args.workers, Path(tmp), args.ray_address, samples_file, args.design,
-                    args.fitness)
+                    args.fitness, not args.exp1_only)
     res["seconds"] = round(time.perf_counter() - t0, 1)
     print(table(res))
     print(f"({res['seconds']} s)")
