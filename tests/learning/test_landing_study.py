@@ -3,6 +3,7 @@ experiment and baseline present in the results and the table. Numbers at this bu
 
 import json
 
+import numpy as np
 import pytest
 from conftest import load_bench
 
@@ -94,7 +95,9 @@ def test_a_study_on_an_unknown_design_or_one_without_samples_is_one_line():
 
     script = Path(__file__).parents[2] / "bench" / "landing_study.py"
     for argv, says in ((["--design", "cat-x"], "unknown design 'cat-x'"),
-                       (["--design", "6V", "--samples", "library"], "no library samples picked on 6V")):
+                       (["--design", "6V", "--samples", "library"], "no library samples picked on 6V"),
+                       (["--exp1-generations", "0"], "--exp1-generations must be at least 1, got 0"),
+                       (["--fitness", "eq10"], "argument --fitness: invalid choice: 'eq10'")):
         r = subprocess.run([sys.executable, str(script), *argv], capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
 
@@ -119,3 +122,30 @@ def test_the_study_on_the_described_cat_in_the_docs_is_the_shipped_run(bench):
     assert f"After 30 generations similarity is ahead in {ahead} of the 6 seed × orientation pairs" in flat
     firsts = [row[f"exp1 {n}"]["first_landed"] for row in res["seeds"].values() for n in ("f", "f+similarity")]
     assert landed == 0 and all(f == [None, None] for f in firsts)  # what the reading says: nothing lands
+
+
+def test_the_table_of_experiment_1_alone_at_another_budget(bench):
+    """``--exp1-only --exp1-generations 300 --fitness landing``: experiment 1's rows only, the best landing score
+    after 10, 30, 100 and 300 generations, and how often it landed; a results file from before those were recorded
+    keeps its table."""
+    def exp1(first, best, landed):
+        return {"first_landed": first, "first_upright": [1, 1], "best_f": [list(np.linspace(0, b, 300)) for b in best],
+                "best_landed": landed, "rollouts_landed": [2 * n for n in landed]}
+
+    res = {"fitness": "landing", "budget": dict(bench.FULL, exp1_generations=300),
+           "seeds": {"0": {"exp1 f": exp1([None, 58], [2.5, 4.5], [0, 243]),
+                           "exp1 f+similarity": exp1([None, 22], [2.4, 4.6], [0, 279])}}}
+    text = bench.table(res)
+    rows = text.splitlines()
+    assert len(rows) == 2 + 2 * 8 and "(2)" not in text and "baseline" not in text
+    assert "| (1) f: generations to first landing, orientation 1 / 4 | never / 58 |" in rows
+    assert [r.split(" after ")[1].split(" ")[0] for r in rows if "best landing score after" in r] == ["10", "30", "100",
+                                                                                                      "300"] * 2
+    assert "| (1) f+similarity: best landing score after 300 generations, orientation 1 / 4 | 2.40 / 4.60 |" in rows
+    assert "| (1) f+similarity: generations whose best lands, orientation 1 / 4 | 0 / 279 |" in rows
+    assert "| (1) f: rollouts that land, orientation 1 / 4 | 0 / 486 |" in rows
+    for row in res["seeds"]["0"].values():  # a file from before 2026-11-29: the same rows without the counts
+        del row["best_landed"], row["rollouts_landed"]
+    res["fitness"] = "eq9"
+    old = bench.table(res)
+    assert len(old.splitlines()) == 2 + 2 * 6 and "best f after 100 generations" in old and "lands," not in old
