@@ -149,3 +149,76 @@ def test_the_table_of_experiment_1_alone_at_another_budget(bench):
     res["fitness"] = "eq9"
     old = bench.table(res)
     assert len(old.splitlines()) == 2 + 2 * 6 and "best f after 100 generations" in old and "lands," not in old
+
+
+def _shipped(name: str) -> dict:
+    from pathlib import Path
+
+    return json.loads((Path(__file__).parents[2] / "learning" / "weights" / name).read_text())
+
+
+def _docs() -> str:
+    from pathlib import Path
+
+    return (Path(__file__).parents[2] / "docs" / "landing.md").read_text()
+
+
+def _ahead(res: dict, g: int) -> tuple[int, int]:
+    """Seed × orientation pairs where experiment 1's best with similarity is above / below f alone's after ``g``."""
+    pairs = [(a[g - 1], b[g - 1]) for row in res["seeds"].values()
+             for a, b in zip(row["exp1 f+similarity"]["best_f"], row["exp1 f"]["best_f"], strict=True)]
+    return sum(a > b for a, b in pairs), sum(a < b for a, b in pairs)
+
+
+def test_the_study_with_the_landing_fitness_in_the_docs_is_the_shipped_run(bench):
+    """docs/landing.md's table of the study ranked by our landing score is `table` of
+    `learning/weights/landing_study_library_cat_landing.json` (`bench/landing_study.py --samples library --design cat
+    --fitness landing`), and its reading counts what the file holds: experiment 1 lands once (similarity, seed 0,
+    orientation 4, from generation 22), similarity is ahead in 2 of 6 pairs after 30 generations, and no net of
+    experiment 2 or 3 lands."""
+    res = _shipped("landing_study_library_cat_landing.json")
+    assert res["fitness"] == "landing" and res["design"] == "cat" and res["budget"] == bench.FULL
+    assert res["samples"] == "learning/weights/landing_samples_library_cat.json"
+    assert sorted(res["seeds"]) == ["0", "1", "2"]
+    doc = _docs()
+    assert bench.table(res) in doc
+    flat = " ".join(doc.split())
+    ahead, behind = _ahead(res, 30)
+    assert f"After 30 generations similarity is ahead in {ahead} of the 6 seed × orientation pairs" in flat
+    assert f"and behind in {behind} (orientation 1 in every seed" in flat
+    firsts = {(s, n): row[f"exp1 {n}"]["first_landed"] for s, row in res["seeds"].items()
+              for n in ("f", "f+similarity")}
+    assert {k: v for k, v in firsts.items() if v != [None, None]} == {("0", "f+similarity"): [None, 22]}
+    assert "similarity on orientation 4 in seed 0, from generation 22" in flat
+    assert all(row[f"{e} {n}"]["landed"] == 0 for row in res["seeds"].values() for e in ("exp2", "exp3")
+               for n in ("one-net", "simple-complex"))
+
+
+def test_experiment_1_at_300_generations_in_the_docs_is_the_shipped_run(bench):
+    """docs/landing.md's five-seed table of experiment 1 at 300 generations with the landing fitness is `table` of
+    `learning/weights/landing_study_exp1_300_cat_landing.json`, and its reading (and the README's) counts what the
+    file holds: similarity's best lands orientation 4 in every seed, f alone's in 3 of 5, similarity first in 3;
+    more rollouts land with similarity in every seed; orientation 1 never lands."""
+    res = _shipped("landing_study_exp1_300_cat_landing.json")
+    assert res["fitness"] == "landing" and res["design"] == "cat" and res["budget"]["exp1_generations"] == 300
+    assert sorted(res["seeds"]) == ["0", "1", "2", "3", "4"] and not res["baselines"]
+    assert all(set(row) == {"exp1 f", "exp1 f+similarity", "seconds"} for row in res["seeds"].values())
+    doc = _docs()
+    assert bench.table(res) in doc
+    rows = list(res["seeds"].values())
+    f = [row["exp1 f"]["first_landed"] for row in rows]
+    sim = [row["exp1 f+similarity"]["first_landed"] for row in rows]
+    assert all(o1 is None for o1, _ in f + sim)  # orientation 1 never
+    assert all(row[f"exp1 {n}"]["rollouts_landed"][0] == 0 for row in rows for n in ("f", "f+similarity"))
+    f_lands, sim_lands = sum(o4 is not None for _, o4 in f), sum(o4 is not None for _, o4 in sim)
+    sim_first = sum(b is not None and (a is None or b < a) for (_, a), (_, b) in zip(f, sim, strict=True))
+    more = sum(row["exp1 f+similarity"]["rollouts_landed"][1] > row["exp1 f"]["rollouts_landed"][1] for row in rows)
+    assert (f_lands, sim_lands, sim_first, more) == (3, 5, 3, 5)
+    flat = " ".join(doc.split())
+    assert "lands it in **all 5 seeds** (first at generation 22, 55, 227, 47 and 30)" in flat
+    assert "the best ranked by f alone in **3 of 5** (58, 33, 21; never in seeds 1 and 2)" in flat
+    assert "More of the population lands with similarity in every seed" in flat
+    from pathlib import Path
+
+    readme = " ".join((Path(__file__).parents[2] / "README.md").read_text().split())
+    assert "similarity's best lands the side-on start in all 5 seeds and f alone's in 3" in readme
