@@ -48,7 +48,8 @@ motion that lands a start on one cat need not land it on another).
 whose optimum is a landing) instead of the paper's eq. 9 × upright, whose optimum on this cat is a roll back upright
 (docs/landing.md, "Ten times the budget for experiment 1"); the experiments, budgets and baselines are unchanged, and
 experiment 1's "best" rows give the best landing score. ``--exp1-only --exp1-generations N`` runs experiment 1
-alone at another budget (the paper ran 1 000 generations; 300 take about 13 min a seed on 2 cores).
+alone at another budget (the paper ran 1 000 generations; 300 take about 13 min a seed on 2 cores);
+``--generations-simple`` and ``--generations-complex`` set experiment 2's.
 """
 
 from __future__ import annotations
@@ -219,8 +220,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fitness", choices=FITNESSES, default="eq9",
                     help="what the trainings rank by: the paper's eq. 9 × upright (default) or our landing score")
     ap.add_argument("--exp1-only", action="store_true", help="experiment 1 only (no experiments 2 and 3, no baselines)")
-    ap.add_argument("--exp1-generations", type=int,
-                    help=f"experiment 1's generations (default {FULL['exp1_generations']}; the paper ran 1000)")
+    for key, what in (("exp1_generations", "experiment 1's generations"),
+                      ("generations_simple", "experiment 2's simple (and one net's first) generations"),
+                      ("generations_complex", "experiment 2's complex (and one net's other) generations")):
+        ap.add_argument(f"--{key.replace('_', '-')}", type=int, help=f"{what} (default {FULL[key]})")
     ap.add_argument("--design", default="cat", help="the cat it all runs on (felis.learning.landing.designs; "
                     "default cat, the described one)")
     args = ap.parse_args(argv)
@@ -236,10 +239,12 @@ def main(argv: list[str] | None = None) -> int:
                      f"design='{args.design}') and add them to LIBRARY_SAMPLES")
         samples_file = LIBRARY_SAMPLES[args.design]
     budget = dict(QUICK if args.quick else FULL)
-    if args.exp1_generations is not None:
-        if args.exp1_generations < 1:
-            ap.error(f"--exp1-generations must be at least 1, got {args.exp1_generations}")
-        budget["exp1_generations"] = args.exp1_generations
+    for key in ("exp1_generations", "generations_simple", "generations_complex"):
+        n = getattr(args, key)
+        if n is not None:
+            if n < 1:
+                ap.error(f"--{key.replace('_', '-')} must be at least 1, got {n}")
+            budget[key] = n
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="felis-landing-study-") as tmp:
         res = study(args.seeds, budget, args.workers, Path(tmp), args.ray_address, samples_file, args.design,

@@ -97,6 +97,7 @@ def test_a_study_on_an_unknown_design_or_one_without_samples_is_one_line():
     for argv, says in ((["--design", "cat-x"], "unknown design 'cat-x'"),
                        (["--design", "6V", "--samples", "library"], "no library samples picked on 6V"),
                        (["--exp1-generations", "0"], "--exp1-generations must be at least 1, got 0"),
+                       (["--generations-complex", "-2"], "--generations-complex must be at least 1, got -2"),
                        (["--fitness", "eq10"], "argument --fitness: invalid choice: 'eq10'")):
         r = subprocess.run([sys.executable, str(script), *argv], capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
