@@ -223,3 +223,21 @@ def test_experiment_1_at_300_generations_in_the_docs_is_the_shipped_run(bench):
 
     readme = " ".join((Path(__file__).parents[2] / "README.md").read_text().split())
     assert "similarity's best lands the side-on start in all 5 seeds and f alone's in 3" in readme
+
+
+def test_experiment_2_at_four_times_the_budget_in_the_docs_is_the_shipped_run(bench):
+    """docs/landing.md's table of the study with the landing fitness and four times experiment 2's budget is `table`
+    of `learning/weights/landing_study_library_cat_landing_x4.json`, and its reading counts what the file holds."""
+    res = _shipped("landing_study_library_cat_landing_x4.json")
+    assert res["fitness"] == "landing" and res["design"] == "cat" and sorted(res["seeds"]) == ["0", "1"]
+    assert res["budget"] == dict(bench.FULL, generations_simple=60, generations_complex=40)
+    doc = _docs()
+    assert bench.table(res) in doc
+    rows = list(res["seeds"].values())
+    landed = sum(r[f"{e} {n}"]["landed"] for r in rows for e in ("exp2", "exp3") for n in ("one-net", "simple-complex"))
+    up = {(e, n): ", ".join(str(r[f"{e} {n}"]["upright"]) for r in rows)
+          for e in ("exp2", "exp3") for n in ("one-net", "simple-complex")}
+    flat = " ".join(doc.split())
+    assert landed == 0 and "Nothing lands in experiments 2 and 3 at four times the budget either" in flat
+    assert (f"simple–complex {up['exp2', 'simple-complex']}, one net {up['exp2', 'one-net']}; of the 4 untrained: "
+            f"{up['exp3', 'simple-complex']} against {up['exp3', 'one-net']}.") in flat
