@@ -15,6 +15,25 @@ def bench():
     return load_bench("landing_study")
 
 
+def _shipped(name: str) -> dict:
+    from pathlib import Path
+
+    return json.loads((Path(__file__).parents[2] / "learning" / "weights" / name).read_text())
+
+
+def _docs() -> str:
+    from pathlib import Path
+
+    return (Path(__file__).parents[2] / "docs" / "landing.md").read_text()
+
+
+def _ahead(res: dict, g: int) -> tuple[int, int]:
+    """Seed × orientation pairs where experiment 1's best with similarity is above / below f alone's after ``g``."""
+    pairs = [(a[g - 1], b[g - 1]) for row in res["seeds"].values()
+             for a, b in zip(row["exp1 f+similarity"]["best_f"], row["exp1 f"]["best_f"], strict=True)]
+    return sum(a > b for a, b in pairs), sum(a < b for a, b in pairs)
+
+
 # The paper's spine samples (the bench's default) and the 24 whole-body ones run in `make test-slow`: the study's
 # code is the same for every sample set but the choice of the 7, and the training tests load the spine samples.
 # The library's samples too (26 s): the default suite keeps the shipped study's figures (below).
@@ -58,9 +77,7 @@ def test_the_shipped_study_on_samples_that_land_says_what_the_docs_say():
     `bench/landing_study.py --samples library`, on the samples of the library extended beyond 100°): similarity
     lifts the best f after 30 generations in 4 of the 6 seed × orientation pairs, and nothing lands in experiment
     1, 2 or 3."""
-    from pathlib import Path
-
-    res = json.loads((Path(__file__).parents[2] / "learning" / "weights" / "landing_study_library.json").read_text())
+    res = _shipped("landing_study_library.json")
     assert res["samples"].endswith("landing_samples_library.json") and sorted(res["seeds"]) == ["0", "1", "2"]
     assert res["budget"]["exp1_generations"] == 30 and res["budget"]["population"] == 16
     ahead = 0
@@ -107,16 +124,12 @@ def test_the_study_on_the_described_cat_in_the_docs_is_the_shipped_run(bench):
     """docs/landing.md's table of the study on the described cat (2 ms paws at 0.5 ms, samples picked on it) is
     `table` of `learning/weights/landing_study_library_cat.json` (made by `bench/landing_study.py --samples library
     --design cat --json ...`), row for row, and its reading counts what the file holds."""
-    from pathlib import Path
-
-    root = Path(__file__).parents[2]
-    res = json.loads((root / "learning" / "weights" / "landing_study_library_cat.json").read_text())
+    res = _shipped("landing_study_library_cat.json")
     assert res["design"] == "cat" and res["samples"] == "learning/weights/landing_samples_library_cat.json"
     assert res["budget"] == bench.FULL and sorted(res["seeds"]) == ["0", "1", "2"]
-    doc = (root / "docs" / "landing.md").read_text()
+    doc = _docs()
     assert bench.table(res) in doc
-    ahead = sum(a[-1] > b[-1] for row in res["seeds"].values()
-                for a, b in zip(row["exp1 f+similarity"]["best_f"], row["exp1 f"]["best_f"], strict=True))
+    ahead, _ = _ahead(res, 30)
     landed = sum(row[f"{e} {n}"]["landed"] for row in res["seeds"].values() for e in ("exp2", "exp3")
                  for n in ("one-net", "simple-complex"))
     flat = " ".join(doc.split())
@@ -150,25 +163,6 @@ def test_the_table_of_experiment_1_alone_at_another_budget(bench):
     res["fitness"] = "eq9"
     old = bench.table(res)
     assert len(old.splitlines()) == 2 + 2 * 6 and "best f after 100 generations" in old and "lands," not in old
-
-
-def _shipped(name: str) -> dict:
-    from pathlib import Path
-
-    return json.loads((Path(__file__).parents[2] / "learning" / "weights" / name).read_text())
-
-
-def _docs() -> str:
-    from pathlib import Path
-
-    return (Path(__file__).parents[2] / "docs" / "landing.md").read_text()
-
-
-def _ahead(res: dict, g: int) -> tuple[int, int]:
-    """Seed × orientation pairs where experiment 1's best with similarity is above / below f alone's after ``g``."""
-    pairs = [(a[g - 1], b[g - 1]) for row in res["seeds"].values()
-             for a, b in zip(row["exp1 f+similarity"]["best_f"], row["exp1 f"]["best_f"], strict=True)]
-    return sum(a > b for a, b in pairs), sum(a < b for a, b in pairs)
 
 
 def test_the_study_with_the_landing_fitness_in_the_docs_is_the_shipped_run(bench):
