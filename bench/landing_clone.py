@@ -120,13 +120,14 @@ def closed_loop(sim, drop, policy, clock: bool):
 
 def clone(sim, drop, x: np.ndarray, hidden: int, steps: int, rounds: int = 0, clock: bool = False,
           seed: int = 0) -> dict:
-    """One motion: recorded, fitted, run closed loop (with ``rounds`` of DAgger)."""
+    """One motion: recorded, fitted, run closed loop (with ``rounds`` of DAgger). The row's ``behaviour`` is the
+    fitted `SimpleBehaviour` (None with a clock, which the paper's units do not read)."""
     it, v, landed = record(sim, drop, x)
     t = np.arange(len(it)) * DT
     data_x = np.hstack([it, t[:, None]]) if clock else it
     data_y = v
     for r in range(rounds + 1):
-        policy, rms, _ = fit(data_x, data_y, hidden, steps, seed)
+        policy, rms, behaviour = fit(data_x, data_y, hidden, steps, seed)
         verdict, seen = closed_loop(sim, drop, policy, clock)
         if r < rounds:  # DAgger: the visited states, labelled with the motion's velocity at their tick
             its = np.concatenate([a for a, _ in seen])
@@ -135,7 +136,138 @@ def clone(sim, drop, x: np.ndarray, hidden: int, steps: int, rounds: int = 0, cl
             data_x = np.concatenate([data_x, np.hstack([its, ts[:, None]]) if clock else its])
             data_y = np.concatenate([data_y, v[k]])
     return {"open_loop_landed": landed, "ticks": len(it), "rms_rad_s": round(rms, 3),
-            "clone_landed": bool(verdict.landed), "why": verdict.why or ""}
+            "clone_landed": bool(verdict.landed), "why": verdict.why or "", "behaviour": behaviour}
+
+
+# ------------------------------------------------------------------ the behaviour evolved over a patch of starts
+
+
+def cap_drops(u: np.ndarray, deg: float, n: int, height_m: float, rng: np.random.Generator) -> list:
+    """``n`` drops (yaw 0, `up_drop`) whose up axes are uniform over the spherical cap of radius ``deg`` round the
+    unit vector ``u``: cos of the angle to ``u`` uniform in [cos deg, 1], the direction round it uniform."""
+    u = np.asarray(u, dtype=float) / np.linalg.norm(u)
+    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(u, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    c = rng.uniform(np.cos(np.radians(deg)), 1.0, n)
+    phi = rng.uniform(0.0, 2 * np.pi, n)
+    s = np.sqrt(1.0 - c * c)
+    ups = c[:, None] * u + s[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    return [up_drop(v, height_m) for v in ups]
+
+
+def genome(b: SimpleBehaviour) -> np.ndarray:
+    """The behaviour's weights as one vector: each unit's W1 then W2, spine, tail, legs."""
+    return np.concatenate([w.ravel() for p in PARTS for w in (getattr(b, p).W1, getattr(b, p).W2)])
+
+
+def with_genome(b: SimpleBehaviour, g: np.ndarray) -> SimpleBehaviour:
+    """``b`` with the weights of ``g`` (`genome`'s order); inputs, hidden sizes and scales kept."""
+    size = sum(getattr(b, p).W1.size + getattr(b, p).W2.size for p in PARTS)
+    if len(g) != size:
+        raise ParameterError(f"clone: a genome of {len(g)} weights for a behaviour of {size}")
+    units, i = [], 0
+    for p in PARTS:
+        u = getattr(b, p)
+        n1, n2 = u.W1.size, u.W2.size
+        units.append(GeneUnit(p, u.inputs, u.hidden, g[i:i + n1].reshape(u.W1.shape),
+                              g[i + n1:i + n1 + n2].reshape(u.W2.shape), u.scale))
+        i += n1 + n2
+    return SimpleBehaviour(*units).check()
+
+
+class Late:
+    """A landing policy started ``ticks`` control ticks late: the joints held (velocity 0) until then, then the
+    policy as if released then (an open-loop motion's clock shifted; a behaviour reads the state it finds), as a
+    servo bus's latency delays it (`felis.learning.landing.optimum.evaluate`'s ``late_ticks``)."""
+
+    def __init__(self, policy, ticks: int):
+        self.policy, self.delay = policy, ticks * DT
+
+    def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        v = np.zeros((len(it), 12))
+        on = t >= self.delay - 1e-9
+        if on.any():
+            f = getattr(self.policy, "velocities_many", None)
+            v[on] = f(it[on]) if callable(f) else self.policy(it[on], t[on] - self.delay, rows[on])
+        return v
+
+
+def run_population(sim, behaviours, drops, late_ticks: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(scores, landed), each (len(behaviours), len(drops)): every behaviour closed loop on every drop, one batch
+    (each started ``late_ticks`` late, `Late`); the score is the per-drop optimum's
+    (`felis.learning.landing.optimum.score`: training's landing fitness, 3 more for a landing)."""
+    from felis.controllers.landing import LandingBatch
+    from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
+    from felis.learning.landing.optimum import score
+
+    P, D = len(behaviours), len(drops)
+    policies = [Late(b, late_ticks) for b in behaviours] if late_ticks else list(behaviours)
+    ctl = LandingBatch(sim.spec, policies, np.repeat(np.arange(P), D))
+    batch = sim.batch.run(list(drops) * P, ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
+    scored = [score(r, sim.standing_waist_m) for r in batch]
+    return (np.array([f for f, _ in scored]).reshape(P, D),
+            np.array([bool(v.landed) for _, v in scored]).reshape(P, D))
+
+
+def evolve(sim, start: SimpleBehaviour, drops, generations: int, popsize: int, sigma: float, seed: int = 0):
+    """CMA-ES (`cma`) over ``start``'s weights, from them, maximising the mean score over ``drops``; the fitted
+    start is scored too and kept if nothing beats it. Returns (best behaviour, its mean score, rollouts, the best
+    mean score after each generation)."""
+    import cma
+
+    if generations < 1 or popsize < 2 or not sigma > 0:
+        raise ParameterError(f"clone: evolution needs generations ≥ 1, popsize ≥ 2, sigma > 0; got {generations}, "
+                             f"{popsize}, {sigma}")
+    g0 = genome(start)
+    best, best_f = start, float(run_population(sim, [start], drops)[0].mean())
+    rollouts, history = len(drops), []
+    es = cma.CMAEvolutionStrategy(g0, sigma, {"popsize": popsize, "seed": seed + 1, "verbose": -9})
+    for _ in range(generations):
+        gs = es.ask()
+        pop = [with_genome(start, np.asarray(g)) for g in gs]
+        f = run_population(sim, pop, drops)[0].mean(axis=1)
+        rollouts += f.size * len(drops)
+        es.tell(gs, (-f).tolist())
+        i = int(np.argmax(f))
+        if f[i] > best_f:
+            best, best_f = pop[i], float(f[i])
+        history.append(round(best_f, 4))
+    return best, best_f, rollouts, history
+
+
+def patch_study(sim, shelf, e: int, height_m: float, args, b: SimpleBehaviour) -> dict:
+    """Motion ``e``'s start and the cap of ``args.patch`` degrees round it: the open-loop motion, the fitted
+    behaviour and that behaviour evolved on ``args.train`` drops of the cap (its start among them) against
+    ``args.test`` other drops of the cap (held out)."""
+    rng = np.random.default_rng([args.seed, e])
+    own = up_drop(shelf.up[e], height_m)
+    train = [own] + cap_drops(shelf.up[e], args.patch, args.train - 1, height_m, rng)
+    test = cap_drops(shelf.up[e], args.patch, args.test, height_m, rng)
+    motion = [bool(v.landed) for _, v in evaluate(sim, test, np.repeat(shelf.x[e][None], len(test), 0))]
+    motion_train = [bool(v.landed) for _, v in evaluate(sim, train, np.repeat(shelf.x[e][None], len(train), 0))]
+    fitted_train = run_population(sim, [b], train)[1][0]
+    fitted_test = run_population(sim, [b], test)[1][0]
+    best, f, rollouts, history = evolve(sim, b, train, args.evolve, args.popsize, args.sigma, args.seed)
+    ev_train = run_population(sim, [best], train)[1][0]
+    ev_test = run_population(sim, [best], test)[1][0]
+    late = {}
+    for k in range(1, args.late + 1):  # the held-out drops started k ticks late
+        m = evaluate(sim, test, np.repeat(shelf.x[e][None], len(test), 0), wrap=lambda pol, n, k=k: Late(pol, k))
+        late[str(k)] = {"motion": sum(bool(v.landed) for _, v in m),
+                        "fitted": int(run_population(sim, [b], test, k)[1].sum()),
+                        "evolved": int(run_population(sim, [best], test, k)[1].sum())}
+    return {"late_test": late, "patch_deg": args.patch, "train": len(train), "test": len(test),
+            "motion_lands_train": int(sum(motion_train)), "motion_lands_test": int(sum(motion)),
+            "fitted_lands_train": int(fitted_train.sum()), "fitted_lands_test": int(fitted_test.sum()),
+            "evolved_lands_train": int(ev_train.sum()), "evolved_lands_test": int(ev_test.sum()),
+            "evolved_lands_own": bool(ev_train[0]), "evolved_score": round(f, 4), "evolution_rollouts": rollouts,
+            "best_after_generation": history}
+
+
+PATCH_COUNTS = ("motion_lands_train", "motion_lands_test", "fitted_lands_train", "fitted_lands_test",
+                "evolved_lands_train", "evolved_lands_test", "evolved_lands_own")
 
 
 def main() -> None:
@@ -148,10 +280,24 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=0, help="DAgger rounds (default 0)")
     ap.add_argument("--clock", action="store_true", help="time since release as one more input")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--evolve", type=int, default=0, metavar="G",
+                    help="evolve each fitted behaviour G generations (CMA-ES) on drops round its start (default 0)")
+    ap.add_argument("--patch", type=float, default=15.0, metavar="DEG",
+                    help="with --evolve: the radius of the cap of starts round the motion's (default 15)")
+    ap.add_argument("--train", type=int, default=8, help="with --evolve: drops it is evolved on, its start one")
+    ap.add_argument("--test", type=int, default=16, help="with --evolve: held-out drops of the cap")
+    ap.add_argument("--popsize", type=int, default=16)
+    ap.add_argument("--sigma", type=float, default=0.1, help="CMA-ES's initial step on the weights (default 0.1)")
+    ap.add_argument("--late", type=int, default=0, metavar="K",
+                    help="with --evolve: the held-out drops also started 1…K ticks late (default 0)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.n < 1 or args.rounds < 0 or args.hidden < 1 or args.steps < 0:
         ap.error("--n and --hidden must be ≥ 1, --rounds and --steps ≥ 0")
+    if args.evolve < 0 or (args.evolve and (args.clock or not 0 < args.patch <= 90 or args.train < 1 or args.late < 0
+                                            or args.test < 1 or args.popsize < 2 or not args.sigma > 0)):
+        ap.error("--evolve must be ≥ 0, and with it: no --clock (the paper's units read no clock), 0 < --patch ≤ 90, "
+                 "--train and --test ≥ 1, --popsize ≥ 2, --sigma > 0, --late ≥ 0")
     import torch
 
     torch.set_num_threads(1)  # small nets: threads cost more than they give
@@ -161,7 +307,7 @@ def main() -> None:
     if len(pool) < args.n:
         ap.error(f"only {len(pool)} motions of the {args.height:g} m shelf are flagged landed tilted {args.tilt}")
     order = np.random.default_rng(args.seed).permutation(pool)
-    sim = design_sim("cat", nthread=1)
+    sim = design_sim("cat", nthread=None if args.evolve else 1)  # a population's batch: every core
     rows, skipped = [], []
     t0 = time.perf_counter()
     try:
@@ -171,19 +317,38 @@ def main() -> None:
             row = {"entry": int(e), "tilt_deg": round(float(t[e]), 1),
                    **clone(sim, up_drop(shelf.up[e], args.height), shelf.x[e], args.hidden, args.steps, args.rounds,
                            args.clock, args.seed)}
+            behaviour = row.pop("behaviour")
             if not row["open_loop_landed"]:  # its flag is the build's; on this cat it does not land: not a sample
                 skipped.append(int(e))
                 continue
+            if args.evolve:
+                row["patch"] = patch_study(sim, shelf, e, args.height, args, behaviour)
             rows.append(row)
             if not args.json:
                 print(f"entry {row['entry']} tilted {row['tilt_deg']:.0f}°: fitted to {row['rms_rad_s']:.2f} rad/s "
                       f"RMS, closed loop landed {row['clone_landed']} {row['why']}", flush=True)
+                if args.evolve:
+                    p = row["patch"]
+                    print(f"  cap of {p['patch_deg']:g}°, held out {p['test']}: motion lands {p['motion_lands_test']}"
+                          f", fitted {p['fitted_lands_test']}, evolved {p['evolved_lands_test']} (on its "
+                          f"{p['train']} training drops {p['motion_lands_train']}, {p['fitted_lands_train']}, "
+                          f"{p['evolved_lands_train']}; {p['evolution_rollouts']} rollouts)", flush=True)
+                    for k, c in p["late_test"].items():
+                        print(f"  started {k} tick{'s' * (k != '1')} late: motion {c['motion']}, fitted "
+                              f"{c['fitted']}, evolved {c['evolved']}", flush=True)
     finally:
         sim.close()
     res = {"height_m": args.height, "hidden": args.hidden, "steps": args.steps, "rounds": args.rounds,
            "clock": args.clock, "seed": args.seed, "seconds": round(time.perf_counter() - t0),
            "motions_tried": len(rows) + len(skipped), "skipped_not_landing": skipped,
            "clone_landed": sum(r["clone_landed"] for r in rows), "motions": rows}
+    if args.evolve:
+        res["evolution"] = {"generations": args.evolve, "patch_deg": args.patch, "train": args.train,
+                            "test": args.test, "popsize": args.popsize, "sigma": args.sigma,
+                            "late": args.late, **{k: sum(r["patch"][k] for r in rows) for k in PATCH_COUNTS},
+                            "late_test": {str(k): {w: sum(r["patch"]["late_test"][str(k)][w] for r in rows)
+                                                   for w in ("motion", "fitted", "evolved")}
+                                          for k in range(1, args.late + 1)}}
     if args.json:
         print(json.dumps(res, indent=1))
         return
@@ -191,6 +356,16 @@ def main() -> None:
           f"{', with a clock' if args.clock else ''}: the fitted behaviour lands {res['clone_landed']} of the "
           f"{len(rows)} drops its motion lands ({len(skipped)} motions skipped: they do not land their start; "
           f"{res['seconds']} s)")
+    if args.evolve:
+        v = res["evolution"]
+        n = len(rows)
+        print(f"held-out starts within {args.patch:g}° ({n} × {args.test}): the open-loop motion lands "
+              f"{v['motion_lands_test']}, the fitted behaviour {v['fitted_lands_test']}, evolved {args.evolve} "
+              f"generations {v['evolved_lands_test']}; the evolved behaviour lands its own start in "
+              f"{v['evolved_lands_own']} of {n}")
+        for k, c in v["late_test"].items():
+            print(f"  started {k} tick{'s' * (k != '1')} late: the motion lands {c['motion']}, fitted {c['fitted']}, "
+                  f"evolved {c['evolved']}")
 
 
 if __name__ == "__main__":
