@@ -1,0 +1,256 @@
+"""Closed-loop landing behaviours imitated from the library's motions, then evolved over a cap of starts (issue 21).
+
+The shipped policy (`felis.learning.landing.library`) runs an open-loop motion chosen at release; the paper's
+controller is a few closed-loop simple behaviours (seed 000 §6.2–6.5, `felis.learning.landing.policy`) that a compose
+net dispatches. This module makes such behaviours from the library and measures them:
+
+1. **Imitate** (`record`, `fit`): a library motion is run open loop from its start and, at each 10 ms tick, the
+   nets' inputs IT (15) and the motion's joint velocities v (12) are kept; the behaviour's spine, tail and legs units
+   (every input, h hidden neurons) are fitted by Adam to v/v_max (their tanh range), least squares.
+2. **Evolve** (`evolve`): CMA-ES (`cma`) over the behaviour's weights from the fitted ones, maximising the mean
+   score over drops of a cap round the motion's start (`cap_drops`); the score is the per-drop optimum's
+   (`felis.learning.landing.optimum.score`: training's landing fitness, 3 more for a landing), every population a
+   single batch of the simulation (`run_population`).
+3. **Dispatch** (`CapPolicy`): behaviours evolved over caps round K centres; at release each cat takes the behaviour
+   whose centre is nearest the up axis its IMU reports, mirrored (`mirror_inputs`, `mirror_velocities`) for a
+   start in the other half of the sphere, as the library's shelves are.
+
+`Late` starts any of these k ticks late (the joints held meanwhile): the latency a servo bus adds.
+
+A cap of radius ρ round the unit up axis c: the up axes u with ∠(u, c) ≤ ρ; drawn uniformly over its area, cos ∠
+is uniform on [cos ρ, 1]. The up axis of a start (roll r, pitch p) in the body frame is u = (−sin p, cos p sin r,
+cos p cos r) (`felis.learning.landing.library`), whatever the yaw.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from felis.errors import ParameterError
+from felis.learning.landing.library_build import up_drop
+from felis.learning.landing.motion import DT  # the control tick (s): a motion's table has one row a tick
+from felis.learning.landing.optimum import evaluate
+from felis.learning.landing.policy import KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
+
+# Mirror images (left ↔ right; the library's `mirror_motion` for a closed loop): every joint axis is the same on both
+# sides, so a mirrored state has the yaw joints' and the legs' rolls negated, left and right legs swapped, and the
+# body's roll negated. IT: spine pitch, yaw, tail pitch, yaw, roll, pitch, height, then fl, fr, hl, hr (pitch,
+# roll); velocities: spine, tail, then fl, fr, hl, hr (pitch, roll).
+_IT_FROM = np.array([0, 1, 2, 3, 4, 5, 6, 9, 10, 7, 8, 13, 14, 11, 12])
+_IT_SIGN = np.array([1, -1, 1, -1, -1, 1, 1, 1, -1, 1, -1, 1, -1, 1, -1], dtype=float)
+_V_FROM = np.array([0, 1, 2, 3, 6, 7, 4, 5, 10, 11, 8, 9])
+_V_SIGN = np.array([1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], dtype=float)
+
+
+def mirror_inputs(it: np.ndarray) -> np.ndarray:
+    """IT (B, 15) of the mirror image of the cats with IT ``it`` (an involution)."""
+    return np.asarray(it)[:, _IT_FROM] * _IT_SIGN
+
+
+def mirror_velocities(v: np.ndarray) -> np.ndarray:
+    """Joint velocities (B, 12) of the mirror image of velocities ``v`` (an involution)."""
+    return np.asarray(v)[:, _V_FROM] * _V_SIGN
+
+
+def up_of_inputs(it: np.ndarray) -> np.ndarray:
+    """The up axes (B, 3) in the body frame from IT's roll (·π) and pitch (·π/2) (module doc)."""
+    r, p = np.asarray(it)[:, 4] * np.pi, np.asarray(it)[:, 5] * (np.pi / 2)
+    return np.stack([-np.sin(p), np.cos(p) * np.sin(r), np.cos(p) * np.cos(r)], axis=1)
+
+
+def fit(it: np.ndarray, v: np.ndarray, hidden: int, steps: int, seed: int = 0, lr: float = 1e-2):
+    """Fit a simple behaviour's units to velocities ``v`` (N, 12; rad/s) at inputs ``it`` (N, 15, or 16 with a clock
+    column): spine from the inputs, tail and legs from the inputs and the spine's raw outputs, as
+    `felis.learning.landing.policy.SimpleBehaviour` runs them. Returns (policy: inputs (B, n) → velocities (B, 12),
+    the RMS error in rad/s, the `SimpleBehaviour` when ``it`` is IT alone, else None)."""
+    import torch
+
+    if hidden < 1 or steps < 0:
+        raise ParameterError(f"caps: needs hidden ≥ 1 and steps ≥ 0, got {hidden} and {steps}")
+    torch.manual_seed(seed)
+    x = torch.tensor(it, dtype=torch.float64)
+    y = torch.tensor(np.clip(v / MAX_SPEED, -0.995, 0.995))
+    n = x.shape[1]
+    nets = {p: torch.nn.Sequential(torch.nn.Linear(n + (p != "spine") * 2, hidden), torch.nn.Tanh(),
+                                   torch.nn.Linear(hidden, len(KINDS[p].outputs)), torch.nn.Tanh()).double()
+            for p in PARTS}
+
+    def forward(x):
+        s = nets["spine"](x)
+        xs = torch.cat([x, s], 1)
+        return torch.cat([s, nets["tail"](xs), nets["legs"](xs)], 1)
+
+    opt = torch.optim.Adam([w for m in nets.values() for w in m.parameters()], lr=lr)
+    for _ in range(steps):
+        loss = ((forward(x) - y) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        rms = float(((forward(x) - y) ** 2).mean().sqrt()) * MAX_SPEED
+
+    def policy(inputs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return MAX_SPEED * forward(torch.tensor(inputs, dtype=torch.float64)).numpy()
+
+    behaviour = None
+    if n == KINDS["spine"].n_available:
+        units = []
+        for p in PARTS:
+            a, b = nets[p][0], nets[p][2]
+            w1 = np.hstack([a.weight.detach().numpy(), a.bias.detach().numpy()[:, None]])
+            w2 = np.hstack([b.weight.detach().numpy(), b.bias.detach().numpy()[:, None]])
+            units.append(GeneUnit(p, tuple(range(KINDS[p].n_available)), hidden, w1, w2, MAX_SPEED))
+        behaviour = SimpleBehaviour(*units).check()
+        policy = behaviour.velocities_many  # the paper's behaviour itself, as the controller runs it
+    return policy, rms, behaviour
+
+
+def record(sim, drop, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(IT (N, 15), velocities (N, 12), landed) of the open-loop motion ``x`` on ``drop``, tick by tick."""
+    seen = []
+
+    def wrap(policy, rows):
+        def recorded(it, t, rows):
+            v = policy(it, t, rows)
+            seen.append((it[0].copy(), v[0].copy()))
+            return v
+        return recorded
+
+    ((_, verdict),) = evaluate(sim, [drop], x[None], wrap=wrap)
+    return np.array([a for a, _ in seen]), np.array([b for _, b in seen]), bool(verdict.landed)
+
+
+def cap_drops(u: np.ndarray, deg: float, n: int, height_m: float, rng: np.random.Generator) -> list:
+    """``n`` drops (yaw 0, `up_drop`) whose up axes are uniform over the spherical cap of radius ``deg`` round the
+    unit vector ``u``: cos of the angle to ``u`` uniform in [cos deg, 1], the direction round it uniform."""
+    u = np.asarray(u, dtype=float) / np.linalg.norm(u)
+    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(u, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    c = rng.uniform(np.cos(np.radians(deg)), 1.0, n)
+    phi = rng.uniform(0.0, 2 * np.pi, n)
+    s = np.sqrt(1.0 - c * c)
+    ups = c[:, None] * u + s[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    return [up_drop(v, height_m) for v in ups]
+
+
+def genome(b: SimpleBehaviour) -> np.ndarray:
+    """The behaviour's weights as one vector: each unit's W1 then W2, spine, tail, legs."""
+    return np.concatenate([w.ravel() for p in PARTS for w in (getattr(b, p).W1, getattr(b, p).W2)])
+
+
+def with_genome(b: SimpleBehaviour, g: np.ndarray) -> SimpleBehaviour:
+    """``b`` with the weights of ``g`` (`genome`'s order); inputs, hidden sizes and scales kept."""
+    size = sum(getattr(b, p).W1.size + getattr(b, p).W2.size for p in PARTS)
+    if len(g) != size:
+        raise ParameterError(f"caps: a genome of {len(g)} weights for a behaviour of {size}")
+    units, i = [], 0
+    for p in PARTS:
+        u = getattr(b, p)
+        n1, n2 = u.W1.size, u.W2.size
+        units.append(GeneUnit(p, u.inputs, u.hidden, g[i:i + n1].reshape(u.W1.shape),
+                              g[i + n1:i + n1 + n2].reshape(u.W2.shape), u.scale))
+        i += n1 + n2
+    return SimpleBehaviour(*units).check()
+
+
+class Late:
+    """A landing policy started ``ticks`` control ticks late: the joints held (velocity 0) until then, then the
+    policy as if released then (an open-loop motion's clock shifted; a behaviour reads the state it finds), as a
+    servo bus's latency delays it (`felis.learning.landing.optimum.evaluate`'s ``late_ticks``)."""
+
+    def __init__(self, policy, ticks: int):
+        self.policy, self.delay = policy, ticks * DT
+
+    def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        v = np.zeros((len(it), 12))
+        on = t >= self.delay - 1e-9
+        if on.any():
+            f = getattr(self.policy, "velocities_many", None)
+            v[on] = f(it[on]) if callable(f) else self.policy(it[on], t[on] - self.delay, rows[on])
+        return v
+
+
+def run_population(sim, behaviours, drops, late_ticks: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(scores, landed), each (len(behaviours), len(drops)): every behaviour closed loop on every drop, one batch
+    (each started ``late_ticks`` late, `Late`); the score is the per-drop optimum's
+    (`felis.learning.landing.optimum.score`: training's landing fitness, 3 more for a landing)."""
+    from felis.controllers.landing import LandingBatch
+    from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
+    from felis.learning.landing.optimum import score
+
+    P, D = len(behaviours), len(drops)
+    policies = [Late(b, late_ticks) for b in behaviours] if late_ticks else list(behaviours)
+    ctl = LandingBatch(sim.spec, policies, np.repeat(np.arange(P), D))
+    batch = sim.batch.run(list(drops) * P, ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
+    scored = [score(r, sim.standing_waist_m) for r in batch]
+    return (np.array([f for f, _ in scored]).reshape(P, D),
+            np.array([bool(v.landed) for _, v in scored]).reshape(P, D))
+
+
+def evolve(sim, start: SimpleBehaviour, drops, generations: int, popsize: int, sigma: float, seed: int = 0):
+    """CMA-ES (`cma`) over ``start``'s weights, from them, maximising the mean score over ``drops``; the fitted
+    start is scored too and kept if nothing beats it. Returns (best behaviour, its mean score, rollouts, the best
+    mean score after each generation)."""
+    import cma
+
+    if generations < 1 or popsize < 2 or not sigma > 0:
+        raise ParameterError(f"caps: evolution needs generations ≥ 1, popsize ≥ 2, sigma > 0; got {generations}, "
+                             f"{popsize}, {sigma}")
+    g0 = genome(start)
+    best, best_f = start, float(run_population(sim, [start], drops)[0].mean())
+    rollouts, history = len(drops), []
+    es = cma.CMAEvolutionStrategy(g0, sigma, {"popsize": popsize, "seed": seed + 1, "verbose": -9})
+    for _ in range(generations):
+        gs = es.ask()
+        pop = [with_genome(start, np.asarray(g)) for g in gs]
+        f = run_population(sim, pop, drops)[0].mean(axis=1)
+        rollouts += f.size * len(drops)
+        es.tell(gs, (-f).tolist())
+        i = int(np.argmax(f))
+        if f[i] > best_f:
+            best, best_f = pop[i], float(f[i])
+        history.append(round(best_f, 4))
+    return best, best_f, rollouts, history
+
+
+
+
+class CapPolicy:
+    """Behaviours over caps (module doc): cat b takes, at its first tick, ``behaviours[k]`` with ``centres[k]``
+    (up axes with u_y ≥ 0) the nearest its up axis, mirrored when u_y < 0, and keeps it. A `LandingBatch` policy
+    (``(IT, t, rows) -> velocities``); one instance per batch run."""
+
+    def __init__(self, centres: np.ndarray, behaviours):
+        self.centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+        self.behaviours = list(behaviours)
+        if len(self.centres) != len(self.behaviours) or not self.behaviours:
+            raise ParameterError(f"caps: {len(self.centres)} centres for {len(self.behaviours)} behaviours")
+        if np.any(self.centres[:, 1] < -1e-9):
+            raise ParameterError("caps: the centres lie in the half u_y ≥ 0 (the other half runs mirrored)")
+        self.choice: dict[int, tuple[int, bool]] = {}
+
+    def choose(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(behaviour index (B,), mirrored (B,)) for up axes ``u`` (B, 3)."""
+        flip = u[:, 1] < 0
+        h = np.where(flip[:, None], u * np.array([1.0, -1.0, 1.0]), u)
+        return np.argmax(h @ self.centres.T, axis=1), flip
+
+    def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        new = [i for i, r in enumerate(rows) if t[i] < DT / 2 or int(r) not in self.choice]
+        if new:
+            k, flip = self.choose(up_of_inputs(it[new]))
+            for i, kk, ff in zip(new, k, flip, strict=True):
+                self.choice[int(rows[i])] = (int(kk), bool(ff))
+        pick = np.array([self.choice[int(r)] for r in rows], dtype=int).reshape(-1, 2)
+        v = np.zeros((len(it), 12))
+        for k in np.unique(pick[:, 0]):
+            for f in (0, 1):
+                g = np.flatnonzero((pick[:, 0] == k) & (pick[:, 1] == f))
+                if g.size:
+                    x = mirror_inputs(it[g]) if f else it[g]
+                    out = self.behaviours[k].velocities_many(x)
+                    v[g] = mirror_velocities(out) if f else out
+        return v
