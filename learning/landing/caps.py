@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from felis.errors import ParameterError
+from felis.learning.landing.library import up_axis
 from felis.learning.landing.library_build import up_drop
 from felis.learning.landing.motion import DT  # the control tick (s): a motion's table has one row a tick
 from felis.learning.landing.optimum import evaluate
@@ -50,12 +51,6 @@ def mirror_inputs(it: np.ndarray) -> np.ndarray:
 def mirror_velocities(v: np.ndarray) -> np.ndarray:
     """Joint velocities (B, 12) of the mirror image of velocities ``v`` (an involution)."""
     return np.asarray(v)[:, _V_FROM] * _V_SIGN
-
-
-def up_of_inputs(it: np.ndarray) -> np.ndarray:
-    """The up axes (B, 3) in the body frame from IT's roll (·π) and pitch (·π/2) (module doc)."""
-    r, p = np.asarray(it)[:, 4] * np.pi, np.asarray(it)[:, 5] * (np.pi / 2)
-    return np.stack([-np.sin(p), np.cos(p) * np.sin(r), np.cos(p) * np.cos(r)], axis=1)
 
 
 def fit(it: np.ndarray, v: np.ndarray, hidden: int, steps: int, seed: int = 0, lr: float = 1e-2):
@@ -134,6 +129,29 @@ def cap_drops(u: np.ndarray, deg: float, n: int, height_m: float, rng: np.random
     s = np.sqrt(1.0 - c * c)
     ups = c[:, None] * u + s[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
     return [up_drop(v, height_m) for v in ups]
+
+
+def nearest_centre(centres: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Index of the centre (K, 3; u_y ≥ 0) nearest each up axis ``u`` (B, 3), mirrored first where u_y < 0."""
+    u = np.where((u[:, 1] < 0)[:, None], u * np.array([1.0, -1.0, 1.0]), u)
+    return np.argmax(u @ np.asarray(centres).T, axis=1)
+
+
+def cell_drops(centres: np.ndarray, k: int, deg: float, n: int, height_m: float, rng: np.random.Generator) -> list:
+    """``n`` drops (yaw 0) of centre ``k``'s cell within ``deg`` of it: starts drawn uniformly over that cap,
+    mirrored into u_y ≥ 0, kept when ``k`` is their nearest centre (the starts `CapPolicy` gives its behaviour).
+    ParameterError when a few thousand draws do not give ``n`` (a cap that misses the cell)."""
+    from felis.learning.landing.library import drop_up
+
+    out: list = []
+    for _ in range(64):
+        ds = cap_drops(centres[k], deg, max(4 * n, 64), height_m, rng)
+        u = np.array([drop_up(d) for d in ds])
+        u[:, 1] = np.abs(u[:, 1])
+        out += [up_drop(v, height_m) for v in u[nearest_centre(centres, u) == k]]
+        if len(out) >= n:
+            return out[:n]
+    raise ParameterError(f"caps: the cap of {deg:g}° round centre {k} holds fewer than {n} starts of its cell")
 
 
 def genome(b: SimpleBehaviour) -> np.ndarray:
@@ -234,14 +252,12 @@ class CapPolicy:
 
     def choose(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(behaviour index (B,), mirrored (B,)) for up axes ``u`` (B, 3)."""
-        flip = u[:, 1] < 0
-        h = np.where(flip[:, None], u * np.array([1.0, -1.0, 1.0]), u)
-        return np.argmax(h @ self.centres.T, axis=1), flip
+        return nearest_centre(self.centres, u), u[:, 1] < 0
 
     def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
         new = [i for i, r in enumerate(rows) if t[i] < DT / 2 or int(r) not in self.choice]
         if new:
-            k, flip = self.choose(up_of_inputs(it[new]))
+            k, flip = self.choose(up_axis(it[new, 4] * np.pi, it[new, 5] * (np.pi / 2)))
             for i, kk, ff in zip(new, k, flip, strict=True):
                 self.choice[int(rows[i])] = (int(kk), bool(ff))
         pick = np.array([self.choice[int(r)] for r in rows], dtype=int).reshape(-1, 2)

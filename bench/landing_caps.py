@@ -1,0 +1,217 @@
+"""A closed-loop landing policy of the paper's shape, made from the library: K simple behaviours, each imitating the
+library's motion for its centre and evolved over its cell of starts, dispatched by the start's up axis (issue 21).
+
+Build (``--out FILE``): the centres are a Fibonacci grid of ``--centres N`` points on the sphere, those tilted at most
+``--max-tilt`` with u_y ≥ 0 (the other half runs mirrored). For each centre, `felis.learning.landing.caps`:
+
+1. the library's choice for the centre's start is run open loop and a simple behaviour of the paper's nets (``--hidden``
+   neurons, every input) is fitted to its velocities (``--steps`` of Adam);
+2. it is evolved by CMA-ES (``--generations``, ``--popsize``, ``--sigma``) on ``--train`` starts of its cell (the
+   starts nearest that centre, within ``--radius`` of it; the centre one of them), maximising the mean of the
+   optimum's score.
+
+The file is written after each centre; ``--resume`` keeps the centres a file of the same settings holds.
+
+Evaluate (``--policy FILE``): on ``--drops`` (``random:100`` by default) for each ``--seeds`` S at the file's height,
+the cap policy and the shipped library (``felis eval landing``'s default), each started 0…``--late`` ticks late
+(the joints held meanwhile), landed of the drops by the one verdict.
+
+    python bench/landing_caps.py --out FILE [--height 1] [--centres 24] [--max-tilt 130] [--radius 42] [--train 16] \\
+        [--generations 30] [--popsize 16] [--sigma 0.1] [--hidden 8] [--steps 1500] [--seed 0] [--resume]
+    python bench/landing_caps.py --policy FILE [--drops random:100] [--seeds 0 1] [--late 2] [--json]
+
+The build takes about 3.5 min a centre on 2 cores at the defaults (7 680 rollouts); the evaluation about 1 min.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from felis.errors import ParameterError
+from felis.learning.landing.caps import (
+    CapPolicy,
+    Late,
+    cell_drops,
+    evolve,
+    fit,
+    genome,
+    record,
+    run_population,
+    with_genome,
+)
+from felis.learning.landing.designs import design_sim
+from felis.learning.landing.library import load_library
+from felis.learning.landing.library_build import fibonacci_ups, tilts_deg, up_drop
+from felis.learning.landing.policy import KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
+
+FORMAT = "felis-landing-caps"
+SETTINGS = ("height_m", "centres", "max_tilt_deg", "radius_deg", "train", "generations", "popsize", "sigma", "hidden",
+            "steps", "seed")
+
+
+def template(hidden: int) -> SimpleBehaviour:
+    """A simple behaviour of the shape the file's genomes fill: every input, ``hidden`` neurons per unit."""
+    return SimpleBehaviour(*[GeneUnit(p, tuple(range(KINDS[p].n_available)), hidden,
+                                      np.zeros((hidden, KINDS[p].n_available + 1)),
+                                      np.zeros((len(KINDS[p].outputs), hidden + 1)), MAX_SPEED) for p in PARTS])
+
+
+def load_caps(path: str | Path) -> tuple[dict, np.ndarray, list[SimpleBehaviour]]:
+    """(the file's dict, centres (K, 3), behaviours) of a file ``--out`` wrote; ParameterError, one line naming the
+    file, for anything else."""
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text())
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise ValueError(f"not a {FORMAT} file")
+        t = template(int(d["settings"]["hidden"]))
+        caps = d["caps"]
+        centres = np.array([c["centre"] for c in caps], dtype=float).reshape(-1, 3)
+        behaviours = [with_genome(t, np.array(c["genome"], dtype=float)) for c in caps]
+        if not behaviours:
+            raise ValueError("it holds no behaviour")
+        CapPolicy(centres, behaviours)
+    except (OSError, ValueError, KeyError, TypeError, ParameterError) as e:
+        raise ParameterError(f"caps: {p}: {e}") from None
+    return d, centres, behaviours
+
+
+def build(args) -> None:
+    settings = {"height_m": args.height, "centres": args.centres, "max_tilt_deg": args.max_tilt,
+                "radius_deg": args.radius, "train": args.train, "generations": args.generations,
+                "popsize": args.popsize, "sigma": args.sigma, "hidden": args.hidden, "steps": args.steps,
+                "seed": args.seed}
+    out = Path(args.out)
+    done = []
+    if args.resume and out.exists():
+        d, _, _ = load_caps(out)
+        if d["settings"] != settings:
+            raise ParameterError(f"caps: {out} was built with other settings: {d['settings']}")
+        done = d["caps"]
+    centres = fibonacci_ups(args.centres, args.max_tilt)
+    lib = load_library()
+    sim = design_sim("cat")
+    t0 = time.perf_counter()
+    try:
+        for k in range(len(done), len(centres)):
+            tk = time.perf_counter()
+            c = centres[k]
+            start = up_drop(c, args.height)
+            it, v, landed = record(sim, start, lib.choose(c, args.height))
+            b = fit(it, v, args.hidden, args.steps, args.seed)[2]
+            rng = np.random.default_rng([args.seed, k])
+            train = [start] + cell_drops(centres, k, args.radius, args.train - 1, args.height, rng)
+            fitted = run_population(sim, [b], train)[1][0]
+            best, f, rollouts, history = evolve(sim, b, train, args.generations, args.popsize, args.sigma, args.seed)
+            evolved = run_population(sim, [best], train)[1][0]
+            done.append({"centre": [round(float(x), 9) for x in c], "tilt_deg": round(float(tilts_deg(c)), 1),
+                         "motion_lands_centre": landed, "fitted_lands_train": int(fitted.sum()),
+                         "evolved_lands_train": int(evolved.sum()), "score": round(f, 4), "rollouts": rollouts,
+                         "best_after_generation": history, "seconds": round(time.perf_counter() - tk),
+                         "genome": [float(x) for x in genome(best)]})
+            doc = {"format": FORMAT, "version": 1, "made_by": "python bench/landing_caps.py " + " ".join(args.argv),
+                   "settings": settings, "caps": done}
+            tmp = out.with_suffix(out.suffix + ".tmp")
+            tmp.write_text(json.dumps(doc, indent=1))
+            tmp.replace(out)
+            print(f"centre {k + 1}/{len(centres)} tilted {done[-1]['tilt_deg']:.0f}°: of its {args.train} training "
+                  f"starts the fitted behaviour lands {done[-1]['fitted_lands_train']}, evolved "
+                  f"{done[-1]['evolved_lands_train']} ({done[-1]['seconds']} s)", flush=True)
+    finally:
+        sim.close()
+    print(f"{out}: {len(done)} behaviours ({time.perf_counter() - t0:.0f} s this run)")
+
+
+def evaluate_caps(args) -> dict:
+    from felis.controllers.landing import LandingBatch
+    from felis.learning.landing.designs import joint_speeds
+    from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ, by_tilt
+    from felis.learning.landing.library import LibraryBatch
+    from felis.scenarios.drop import drops_from
+
+    d, centres, behaviours = load_caps(args.policy)
+    h = float(d["settings"]["height_m"])
+    lib = load_library()
+    sim = design_sim("cat")
+    res = {"policy": str(args.policy), "height_m": h, "drops": args.drops, "behaviours": len(behaviours), "seeds": {}}
+    try:
+        for s in args.seeds:
+            drops = drops_from(args.drops, s, h)
+            n_ticks = max(int(round((x.fall_time + MARGIN_S) * RATE_HZ)) for x in drops)
+            row = {}
+            heights = [x.height_m for x in drops]
+            for name, make in (("caps", lambda: CapPolicy(centres, behaviours)),
+                               ("library", lambda hs=heights, n=n_ticks: LibraryBatch(lib, hs, n,
+                                                                                      joint_speeds(sim.spec)))):
+                landed = []
+                for k in range(args.late + 1):
+                    pol = make() if k == 0 else Late(make(), k)
+                    out = sim.run(drops, LandingBatch(sim.spec, [pol]))
+                    landed.append([bool(o.landed) for o in out])
+                row[name] = {"landed": [sum(x) for x in landed], "by_tilt": by_tilt(drops, landed[0])}
+            res["seeds"][str(s)] = row
+    finally:
+        sim.close()
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", help="build a cap policy into this file")
+    ap.add_argument("--policy", help="evaluate the cap policy of this file")
+    ap.add_argument("--height", type=float, default=1.0)
+    ap.add_argument("--centres", type=int, default=24, help="Fibonacci points on the sphere (default 24: 9 kept)")
+    ap.add_argument("--max-tilt", type=float, default=130.0)
+    ap.add_argument("--radius", type=float, default=42.0, help="the training starts lie this close to the centre")
+    ap.add_argument("--train", type=int, default=16)
+    ap.add_argument("--generations", type=int, default=30)
+    ap.add_argument("--popsize", type=int, default=16)
+    ap.add_argument("--sigma", type=float, default=0.1)
+    ap.add_argument("--hidden", type=int, default=8)
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--drops", default="random:100")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--late", type=int, default=2)
+    ap.add_argument("--json", action="store_true")
+    import sys
+
+    args = ap.parse_args()
+    args.argv = sys.argv[1:]
+    if (args.out is None) == (args.policy is None):
+        ap.error("give --out FILE (build) or --policy FILE (evaluate)")
+    if args.out and not (args.centres >= 1 and 0 < args.max_tilt <= 180 and 0 < args.radius <= 90
+                         and args.train >= 1 and args.generations >= 1 and args.popsize >= 2 and args.sigma > 0
+                         and args.hidden >= 1 and args.steps >= 0 and 0 < args.height <= 20):
+        ap.error("needs --centres, --train, --generations, --hidden ≥ 1, --popsize ≥ 2, --steps ≥ 0, --sigma > 0, "
+                 "0 < --max-tilt ≤ 180, 0 < --radius ≤ 90, 0 < --height ≤ 20")
+    if args.late < 0:
+        ap.error("--late must be ≥ 0")
+    import torch
+
+    torch.set_num_threads(1)  # small nets: threads cost more than they give
+    try:
+        if args.out:
+            build(args)
+            return
+        res = evaluate_caps(args)
+    except ParameterError as e:
+        raise SystemExit(str(e)) from None
+    if args.json:
+        print(json.dumps(res, indent=1))
+        return
+    print(f"{res['policy']}: {res['behaviours']} behaviours; {args.drops} from {res['height_m']:g} m, landed "
+          f"started 0…{args.late} ticks late")
+    for s, row in res["seeds"].items():
+        for name, r in row.items():
+            print(f"  seed {s} {name:8s} " + "  ".join(f"{k} late: {n}" for k, n in enumerate(r["landed"])))
+
+
+if __name__ == "__main__":
+    main()
