@@ -174,3 +174,21 @@ def test_cap_policy_takes_the_nearest_centre_and_runs_a_mirror_start_as_the_mirr
         caps.CapPolicy(centres[:2], bs[:1])
     with pytest.raises(ParameterError, match="half u_y ≥ 0"):
         caps.CapPolicy([[0.0, -1.0, 0.0]], bs[:1])
+
+
+def test_cell_drops_are_the_starts_the_dispatch_gives_that_centre():
+    from felis.errors import ParameterError
+    from felis.learning.landing import caps
+    from felis.learning.landing.library import drop_up
+    from felis.learning.landing.library_build import fibonacci_ups
+
+    centres = fibonacci_ups(24, 130.0)
+    rng = np.random.default_rng(0)
+    for k in (0, 4, len(centres) - 1):
+        drops = caps.cell_drops(centres, k, 42.0, 40, 1.0, rng)
+        u = np.array([drop_up(d) for d in drops])
+        assert len(drops) == 40 and np.all(u[:, 1] >= 0) and all(d.yaw_deg == 0 for d in drops)
+        assert np.all(caps.nearest_centre(centres, u) == k)
+        assert np.degrees(np.arccos(np.clip(u @ centres[k], -1, 1))).max() <= 42.0 + 1e-3
+    with pytest.raises(ParameterError, match="fewer than 5 starts of its cell"):
+        caps.cell_drops(np.array([[0, 0, 1.0], [0, 0, 1.0]]), 1, 10.0, 5, 1.0, rng)  # a twin takes its cell
