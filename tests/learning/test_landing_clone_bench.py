@@ -91,3 +91,50 @@ def test_clone_bench_evolves_one_motion_over_its_cap():
                 ["--evolve", "2", "--late", "-1"]):
         out = subprocess.run([sys.executable, str(BENCH), *bad], capture_output=True, text=True, timeout=120)
         assert out.returncode == 2 and "--evolve must be ≥ 0" in out.stderr, (bad, out.stderr)
+
+
+def test_the_shipped_evolution_runs_are_what_the_docs_say():
+    """docs/landing.md "Closed-loop behaviours: imitated, then evolved over their starts": every count of its table
+    and readings recounted from `learning/weights/landing_clone_evolve-1m.json`."""
+    root = BENCH.parents[1]
+    runs = json.loads((root / "learning" / "weights" / "landing_clone_evolve-1m.json").read_text())["runs"]
+    text = " ".join((root / "docs" / "landing.md").read_text().split())
+    want = {"cap-15": (12, 16, 15.0, 1173), "cap-30": (8, 24, 30.0, 1518)}
+    for name, r in runs.items():
+        ps = [m["patch"] for m in r["motions"]]
+        n, test, deg, secs = want[name]
+        assert (len(ps), r["evolution"]["test"], r["evolution"]["patch_deg"], r["seconds"]) == (n, test, deg, secs)
+        tot = {k: sum(p[f"{k}_lands_test"] for p in ps) for k in ("motion", "fitted", "evolved")}
+        late = {k: [sum(p["late_test"][t][k] for p in ps) for t in ("1", "2")] for k in ("motion", "fitted", "evolved")}
+        assert tot == {k: r["evolution"][f"{k}_lands_test"] for k in tot} and late["evolved"] == [
+            r["evolution"]["late_test"][t]["evolved"] for t in ("1", "2")]
+        row = (f"| cap of {deg:g}°: {n} motions × {test} starts")
+        assert row in text and f"{secs:,}".replace(",", " ") + " s) | " + f"{tot['motion']} | {tot['fitted']} | " \
+            f"**{tot['evolved']}** |" in text
+        assert (f"| … started 1 / 2 ticks late | {late['motion'][0]} / {late['motion'][1]} | {late['fitted'][0]} / "
+                f"{late['fitted'][1]} | **{late['evolved'][0]} / {late['evolved'][1]}** |") in text
+        assert all(p["evolution_rollouts"] == r["motions"][0]["patch"]["evolution_rollouts"] for p in ps)
+    p15, p30 = ([m["patch"] for m in runs[k]["motions"]] for k in ("cap-15", "cap-30"))
+
+    def ahead(ps):
+        return (sum(p["evolved_lands_test"] > p["motion_lands_test"] for p in ps),
+                sum(p["evolved_lands_test"] < p["motion_lands_test"] for p in ps))
+
+    assert ahead(p15) == (8, 3) and ahead(p30) == (5, 3)
+    won = [p for p in p30 if p["evolved_lands_test"] > p["motion_lands_test"]]
+    assert (min(p["evolved_lands_test"] for p in won), max(p["evolved_lands_test"] for p in won)) == (11, 21)
+    assert (min(p["motion_lands_test"] for p in won), max(p["motion_lands_test"] for p in won)) == (1, 10)
+    assert [p15[0]["evolution_rollouts"], p30[0]["evolution_rollouts"]] == [3848, 7696]
+    assert sum(p["evolved_lands_train"] == 0 or p["evolved_lands_test"] == 0 for p in p30) == 3
+    assert sum(p["evolved_lands_test"] == 0 for p in p15) == 2
+    assert all(p["fitted_lands_train"] <= 2 for p in p30 if p["evolved_lands_test"] == 0)
+    assert all(p["fitted_lands_train"] <= 2 for p in p15 if p["evolved_lands_test"] == 0)
+    assert [sum(p["evolved_lands_own"] for p in ps) for ps in (p15, p30)] == [10, 5]
+    assert [sum(m["clone_landed"] for m in runs[k]["motions"]) for k in ("cap-15", "cap-30")] == [4, 3]
+    assert [len(runs[k]["skipped_not_landing"]) for k in runs] == [3, 3]
+    for s in ("more held-out starts than its motion for 8 of the 12 motions and fewer for 3",
+              "5 more and 3 fewer, and the 5 land 11–21 of their 24 starts where their motions land 1–10",
+              "3 848 rollouts a motion (98 s)", "7 696 (190 s)", "land 62 and 23 of the held-out starts",
+              "land 110 and 84", "3 of the 8 motions with 30° caps and 2 of the 12 with 15° caps",
+              "10 of 12 motions with 15° caps and 5 of 8 with 30° caps", "The fitted behaviour lands 4 and 3"):
+        assert s in text, s
