@@ -139,7 +139,8 @@ def test_the_shipped_evolution_runs_are_what_the_docs_say():
               "10 of 12 motions with 15° caps and 5 of 8 with 30° caps", "The fitted behaviour lands 4 and 3"):
         assert s in text, s
     readme = " ".join((root / "README.md").read_text().split())
-    t15, t30 = ({k: sum(p[f"{k}_lands_test"] for p in ps) for k in ("motion", "fitted", "evolved")} for ps in (p15, p30))
+    kinds = ("motion", "fitted", "evolved")
+    t15, t30 = ({k: sum(p[f"{k}_lands_test"] for p in ps) for k in kinds} for ps in (p15, p30))
     assert (f"within 15° of 12 motions the evolved behaviours land {t15['evolved']} of 192, the open-loop motions "
             f"{t15['motion']} and the fitted behaviours {t15['fitted']}. Within 30° of 8 motions they land "
             f"{t30['evolved']}, {t30['motion']} and {t30['fitted']}. Started 2 ticks late the motions land 62 and 23, "
