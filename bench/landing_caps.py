@@ -10,14 +10,17 @@ Build (``--out FILE``): the centres are a Fibonacci grid of ``--centres N`` poin
    starts nearest that centre, within ``--radius`` of it; the centre one of them), maximising the mean of the
    optimum's score.
 
-The file is written after each centre; ``--resume`` keeps the centres a file of the same settings holds.
+The file is written after each centre; ``--resume`` keeps the centres a file of the same settings holds. ``--more G``
+(same settings) evolves G more generations for each centre landing fewer than ``--below N`` of its training starts,
+from its genome on the same starts, and keeps the result where it scores higher (the file records each round).
 
 Evaluate (``--policy FILE``): on ``--drops`` (``random:100`` by default) for each ``--seeds`` S at the file's height,
 the cap policy and the shipped library (``felis eval landing``'s default), each started 0…``--late`` ticks late
 (the joints held meanwhile), landed of the drops by the one verdict.
 
     python bench/landing_caps.py --out FILE [--height 1] [--centres 24] [--max-tilt 130] [--radius 42] [--train 16] \\
-        [--generations 30] [--popsize 16] [--sigma 0.1] [--hidden 8] [--steps 1500] [--seed 0] [--resume]
+        [--generations 30] [--popsize 16] [--sigma 0.1] [--hidden 8] [--steps 1500] [--seed 0] [--resume] \
+        [--more G [--below N]]
     python bench/landing_caps.py --policy FILE [--drops random:100] [--seeds 0 1] [--late 2] [--json]
 
 The build takes about 3.5 min a centre on 2 cores at the defaults (7 680 rollouts); the evaluation about 1 min.
@@ -87,8 +90,10 @@ def build(args) -> None:
                 "popsize": args.popsize, "sigma": args.sigma, "hidden": args.hidden, "steps": args.steps,
                 "seed": args.seed}
     out = Path(args.out)
-    done = []
-    if args.resume and out.exists():
+    done, d = [], {}
+    if args.more and not out.exists():
+        raise ParameterError(f"caps: --more continues a built file; {out} does not exist")
+    if (args.resume or args.more) and out.exists():
         d, _, _ = load_caps(out)
         if d["settings"] != settings:
             raise ParameterError(f"caps: {out} was built with other settings: {d['settings']}")
@@ -97,15 +102,55 @@ def build(args) -> None:
     lib = load_library()
     sim = design_sim("cat")
     t0 = time.perf_counter()
+
+    def training(k: int) -> list:  # centre k's training starts: the same for every round
+        rng = np.random.default_rng([args.seed, k])
+        start = up_drop(centres[k], args.height)
+        return [start] + cell_drops(centres, k, args.radius, args.train - 1, args.height, rng)
+
+    def save() -> None:
+        doc = {"format": FORMAT, "version": 1, "made_by": made_by, "settings": settings, "caps": done}
+        if more_by:
+            doc["more_by"] = more_by
+        tmp = out.with_suffix(out.suffix + ".tmp")
+        tmp.write_text(json.dumps(doc, indent=1))
+        tmp.replace(out)
+
+    made_by = d.get("made_by") if done else "python bench/landing_caps.py " + " ".join(args.argv)
+    more_by = list(d.get("more_by", [])) if done else []
     try:
+        if args.more:  # each centre landing fewer than --below of its training starts: evolved --more generations on
+            if len(done) < len(centres):  # from its genome, kept where it scores higher
+                raise ParameterError(f"caps: {out} holds {len(done)} of {len(centres)} centres; finish it first")
+            t = template(args.hidden)
+            for k, cap in enumerate(done):
+                if cap["evolved_lands_train"] >= args.below:
+                    continue
+                tk = time.perf_counter()
+                train = training(k)
+                start = with_genome(t, np.array(cap["genome"], dtype=float))
+                best, f, rollouts, history = evolve(sim, start, train, args.more, args.popsize, args.sigma,
+                                                    args.seed + 1 + len(cap.get("more", [])))
+                evolved = run_population(sim, [best], train)[1][0]
+                cap.setdefault("more", []).append({"generations": args.more, "score": round(f, 4),
+                                                   "evolved_lands_train": int(evolved.sum()), "rollouts": rollouts,
+                                                   "best_after_generation": history,
+                                                   "seconds": round(time.perf_counter() - tk)})
+                print(f"centre {k + 1}/{len(centres)}: {cap['evolved_lands_train']} → {int(evolved.sum())} of its "
+                      f"{args.train} training starts after {args.more} more generations", flush=True)
+                cap.update(evolved_lands_train=int(evolved.sum()), score=round(f, 4),
+                           genome=[float(x) for x in genome(best)])
+                if not more_by or more_by[-1] != " ".join(args.argv):
+                    more_by.append(" ".join(args.argv))
+                save()
+            return
         for k in range(len(done), len(centres)):
             tk = time.perf_counter()
             c = centres[k]
             start = up_drop(c, args.height)
             it, v, landed = record(sim, start, lib.choose(c, args.height))
             b = fit(it, v, args.hidden, args.steps, args.seed)[2]
-            rng = np.random.default_rng([args.seed, k])
-            train = [start] + cell_drops(centres, k, args.radius, args.train - 1, args.height, rng)
+            train = training(k)
             fitted = run_population(sim, [b], train)[1][0]
             best, f, rollouts, history = evolve(sim, b, train, args.generations, args.popsize, args.sigma, args.seed)
             evolved = run_population(sim, [best], train)[1][0]
@@ -114,11 +159,7 @@ def build(args) -> None:
                          "evolved_lands_train": int(evolved.sum()), "score": round(f, 4), "rollouts": rollouts,
                          "best_after_generation": history, "seconds": round(time.perf_counter() - tk),
                          "genome": [float(x) for x in genome(best)]})
-            doc = {"format": FORMAT, "version": 1, "made_by": "python bench/landing_caps.py " + " ".join(args.argv),
-                   "settings": settings, "caps": done}
-            tmp = out.with_suffix(out.suffix + ".tmp")
-            tmp.write_text(json.dumps(doc, indent=1))
-            tmp.replace(out)
+            save()
             print(f"centre {k + 1}/{len(centres)} tilted {done[-1]['tilt_deg']:.0f}°: of its {args.train} training "
                   f"starts the fitted behaviour lands {done[-1]['fitted_lands_train']}, evolved "
                   f"{done[-1]['evolved_lands_train']} ({done[-1]['seconds']} s)", flush=True)
@@ -176,6 +217,10 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--more", type=int, default=0, metavar="G",
+                    help="with --out FILE (built): evolve G more generations for each centre below --below")
+    ap.add_argument("--below", type=int, default=10 ** 9, metavar="N",
+                    help="with --more: only centres landing fewer than N of their training starts (default all)")
     ap.add_argument("--drops", default="random:100")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--late", type=int, default=2)
@@ -191,8 +236,8 @@ def main() -> None:
                          and args.hidden >= 1 and args.steps >= 0 and 0 < args.height <= 20):
         ap.error("needs --centres, --train, --generations, --hidden ≥ 1, --popsize ≥ 2, --steps ≥ 0, --sigma > 0, "
                  "0 < --max-tilt ≤ 180, 0 < --radius ≤ 90, 0 < --height ≤ 20")
-    if args.late < 0:
-        ap.error("--late must be ≥ 0")
+    if args.late < 0 or args.more < 0:
+        ap.error("--late and --more must be ≥ 0")
     import torch
 
     torch.set_num_threads(1)  # small nets: threads cost more than they give

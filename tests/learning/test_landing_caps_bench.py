@@ -14,7 +14,8 @@ BENCH = Path(__file__).resolve().parents[2] / "bench" / "landing_caps.py"
 
 def test_build_then_resume_then_evaluate(tmp_path):
     """A one-centre build (a generation of two on three starts), resumed (nothing left to do: the same file), a
-    resume with other settings refused in one line, then the evaluation of it and the library on six drops."""
+    resume with other settings refused in one line, one more generation (`--more`: kept only if it scores higher;
+    recorded), then the evaluation of it and the library on six drops."""
     out = tmp_path / "caps.json"
     cmd = [sys.executable, str(BENCH), "--out", str(out), "--centres", "6", "--max-tilt", "60", "--train", "3",
            "--generations", "1", "--popsize", "2", "--steps", "50"]
@@ -29,6 +30,15 @@ def test_build_then_resume_then_evaluate(tmp_path):
     assert r.returncode == 0 and out.read_bytes() == before and "1 behaviours" in r.stdout
     r = subprocess.run([*cmd[:-2], "--steps", "60", "--resume"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 1 and "built with other settings" in r.stderr and r.stderr.strip().count("\n") == 0
+    r = subprocess.run([*cmd, "--more", "1"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    d2 = json.loads(out.read_text())
+    (c2,) = d2["caps"]
+    assert c2["score"] >= c["score"] and len(c2["more"]) == 1 and c2["more"][0]["rollouts"] == 3 + 2 * 3
+    assert d2["more_by"] == [" ".join(cmd[2:] + ["--more", "1"])] and d2["made_by"] == d["made_by"]
+    r = subprocess.run([*cmd[:3], str(tmp_path / "none.json"), *cmd[4:], "--more", "1"], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 1 and "--more continues a built file" in r.stderr
     r = subprocess.run([sys.executable, str(BENCH), "--policy", str(out), "--drops", "random:6", "--seeds", "0",
                         "--late", "1", "--json"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
