@@ -132,7 +132,9 @@ def build(args) -> None:
                 best, f, rollouts, history = evolve(sim, start, train, args.more, args.popsize, args.sigma,
                                                     args.seed + 1 + len(cap.get("more", [])))
                 evolved = run_population(sim, [best], train)[1][0]
-                cap.setdefault("more", []).append({"generations": args.more, "score": round(f, 4),
+                cap.setdefault("more", []).append({"generations": args.more, "score_before": cap["score"],
+                                                   "lands_train_before": cap["evolved_lands_train"],
+                                                   "score": round(f, 4),
                                                    "evolved_lands_train": int(evolved.sum()), "rollouts": rollouts,
                                                    "best_after_generation": history,
                                                    "seconds": round(time.perf_counter() - tk)})
