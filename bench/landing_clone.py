@@ -13,12 +13,18 @@ motion's start: does it land as the motion does?
   that tick, join the data and the units are fitted again;
 - ``--clock``: time since release as one more input (not in the paper's Table 1, which gives the nets no clock; the
   waist height Sh is their only one, and it barely moves in the first ticks of a fall): whether a clock is what a
-  reactive net misses.
+  reactive net misses;
+- ``--evolve G``: the fitted behaviour is then evolved G generations by CMA-ES (``--popsize``, ``--sigma``) on
+  ``--train`` starts of the cap of ``--patch`` degrees round the motion's start (that start one of them), and the
+  motion, the fitted and the evolved behaviour are run on ``--test`` other starts of the cap (held out), on time and
+  started 1…``--late`` ticks late (`felis.learning.landing.caps`).
 
-    python bench/landing_clone.py [--height 1] [--n 8] [--tilt 50 120] [--hidden 8] [--steps 1500] [--rounds 0] \
-        [--clock] [--seed 0] [--json]
+    python bench/landing_clone.py [--height 1] [--n 8] [--tilt 50 120] [--hidden 8] [--steps 1500] [--rounds 0] \\
+        [--clock] [--seed 0] [--evolve G [--patch 15] [--train 8] [--test 16] [--popsize 16] [--sigma 0.1] \\
+        [--late K]] [--json]
 
-About 6 s a motion at the defaults (2 cores; ``--hidden 64`` about 20 s).
+About 6 s a motion at the defaults (2 cores; ``--hidden 64`` about 20 s; ``--evolve 30``: about 100 s at 15°, 190 s
+with ``--patch 30 --train 16 --test 24``).
 """
 
 from __future__ import annotations
