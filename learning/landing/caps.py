@@ -234,8 +234,6 @@ def evolve(sim, start: SimpleBehaviour, drops, generations: int, popsize: int, s
     return best, best_f, rollouts, history
 
 
-
-
 class CapPolicy:
     """Behaviours over caps (module doc): cat b takes, at its first tick, ``behaviours[k]`` with ``centres[k]``
     (up axes with u_y ≥ 0) the nearest its up axis, mirrored when u_y < 0, and keeps it. A `LandingBatch` policy
