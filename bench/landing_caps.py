@@ -8,7 +8,9 @@ Build (``--out FILE``): the centres are a Fibonacci grid of ``--centres N`` poin
    neurons, every input) is fitted to its velocities (``--steps`` of Adam);
 2. it is evolved by CMA-ES (``--generations``, ``--popsize``, ``--sigma``) on ``--train`` starts of its cell (the
    starts nearest that centre, within ``--radius`` of it; the centre one of them), maximising the mean of the
-   optimum's score.
+   optimum's score. With ``--neighbours N`` it starts from whichever scores best on those starts: the fit or one of
+   the N nearest centres' evolved behaviours (the grid runs from upright down, so a centre continues from the ones
+   above it).
 
 The file is written after each centre; ``--resume`` keeps the centres a file of the same settings holds. ``--more G``
 (same settings) evolves G more generations for each centre landing fewer than ``--below N`` of its training starts,
@@ -19,8 +21,8 @@ the cap policy and the shipped library (``felis eval landing``'s default), each 
 (the joints held meanwhile), landed of the drops by the one verdict.
 
     python bench/landing_caps.py --out FILE [--height 1] [--centres 24] [--max-tilt 130] [--radius 42] [--train 16] \\
-        [--generations 30] [--popsize 16] [--sigma 0.1] [--hidden 8] [--steps 1500] [--seed 0] [--resume] \\
-        [--more G [--below N]]
+        [--generations 30] [--popsize 16] [--sigma 0.1] [--hidden 8] [--steps 1500] [--seed 0] [--neighbours N] \\
+        [--resume] [--more G [--below N]]
     python bench/landing_caps.py --policy FILE [--drops random:100] [--seeds 0 1] [--late 2] [--json]
 
 The build takes about 3 min a centre on 2 cores at the defaults (7 696 rollouts); the evaluation about 1 min.
@@ -37,57 +39,18 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.learning.landing.caps import (
-    CapPolicy,
-    Late,
-    cell_drops,
-    evolve,
-    fit,
-    genome,
-    record,
-    run_population,
-    with_genome,
-)
+from felis.learning.landing.cap_policy import FORMAT, CapPolicy, genome, load_caps, template, with_genome
+from felis.learning.landing.caps import Late, cell_drops, evolve, fit, record, run_population
 from felis.learning.landing.designs import design_sim
 from felis.learning.landing.library import load_library
 from felis.learning.landing.library_build import fibonacci_ups, tilts_deg, up_drop
-from felis.learning.landing.policy import KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
-
-FORMAT = "felis-landing-caps"
-
-
-def template(hidden: int) -> SimpleBehaviour:
-    """A simple behaviour of the shape the file's genomes fill: every input, ``hidden`` neurons per unit."""
-    return SimpleBehaviour(*[GeneUnit(p, tuple(range(KINDS[p].n_available)), hidden,
-                                      np.zeros((hidden, KINDS[p].n_available + 1)),
-                                      np.zeros((len(KINDS[p].outputs), hidden + 1)), MAX_SPEED) for p in PARTS])
-
-
-def load_caps(path: str | Path) -> tuple[dict, np.ndarray, list[SimpleBehaviour]]:
-    """(the file's dict, centres (K, 3), behaviours) of a file ``--out`` wrote; ParameterError, one line naming the
-    file, for anything else."""
-    p = Path(path)
-    try:
-        d = json.loads(p.read_text())
-        if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise ValueError(f"not a {FORMAT} file")
-        t = template(int(d["settings"]["hidden"]))
-        caps = d["caps"]
-        centres = np.array([c["centre"] for c in caps], dtype=float).reshape(-1, 3)
-        behaviours = [with_genome(t, np.array(c["genome"], dtype=float)) for c in caps]
-        if not behaviours:
-            raise ValueError("it holds no behaviour")
-        CapPolicy(centres, behaviours)
-    except (OSError, ValueError, KeyError, TypeError, ParameterError) as e:
-        raise ParameterError(f"caps: {p}: {e}") from None
-    return d, centres, behaviours
 
 
 def build(args) -> None:
     settings = {"height_m": args.height, "centres": args.centres, "max_tilt_deg": args.max_tilt,
                 "radius_deg": args.radius, "train": args.train, "generations": args.generations,
                 "popsize": args.popsize, "sigma": args.sigma, "hidden": args.hidden, "steps": args.steps,
-                "seed": args.seed}
+                "seed": args.seed, **({"neighbours": args.neighbours} if args.neighbours else {})}
     out = Path(args.out)
     done, d = [], {}
     if args.more and not out.exists():
@@ -152,17 +115,27 @@ def build(args) -> None:
             it, v, landed = record(sim, start, lib.choose(c, args.height))
             b = fit(it, v, args.hidden, args.steps, args.seed)[2]
             train = training(k)
-            fitted = run_population(sim, [b], train)[1][0]
-            best, f, rollouts, history = evolve(sim, b, train, args.generations, args.popsize, args.sigma, args.seed)
+            # the evolution starts from the fit or, with --neighbours N, from the best on these starts of it and the
+            # N nearest centres' evolved behaviours (a continuation over the sphere: the grid runs from upright down)
+            near = np.argsort(-(np.array([d["centre"] for d in done]).reshape(-1, 3) @ c))[:args.neighbours]
+            cands = [b] + [with_genome(template(args.hidden), np.array(done[j]["genome"], dtype=float)) for j in near]
+            scores, lands = run_population(sim, cands, train)
+            i = int(np.argmax(scores.mean(axis=1)))
+            best, f, rollouts, history = evolve(sim, cands[i], train, args.generations, args.popsize, args.sigma,
+                                                args.seed)
             evolved = run_population(sim, [best], train)[1][0]
+            started = {"start": "fit" if i == 0 else f"centre {int(near[i - 1]) + 1}",
+                       "start_lands_train": int(lands[i].sum())} if len(cands) > 1 else {}
             done.append({"centre": [round(float(x), 9) for x in c], "tilt_deg": round(float(tilts_deg(c)), 1),
-                         "motion_lands_centre": landed, "fitted_lands_train": int(fitted.sum()),
-                         "evolved_lands_train": int(evolved.sum()), "score": round(f, 4), "rollouts": rollouts,
+                         "motion_lands_centre": landed, "fitted_lands_train": int(lands[0].sum()), **started,
+                         "evolved_lands_train": int(evolved.sum()), "score": round(f, 4),
+                         "rollouts": rollouts + len(train) * (len(cands) - 1),
                          "best_after_generation": history, "seconds": round(time.perf_counter() - tk),
                          "genome": [float(x) for x in genome(best)]})
             save()
+            frm = f" (from {started['start']}, which lands {started['start_lands_train']})" if started else ""
             print(f"centre {k + 1}/{len(centres)} tilted {done[-1]['tilt_deg']:.0f}°: of its {args.train} training "
-                  f"starts the fitted behaviour lands {done[-1]['fitted_lands_train']}, evolved "
+                  f"starts the fitted behaviour lands {done[-1]['fitted_lands_train']}, evolved{frm} "
                   f"{done[-1]['evolved_lands_train']} ({done[-1]['seconds']} s)", flush=True)
     finally:
         sim.close()
@@ -217,6 +190,9 @@ def main() -> None:
     ap.add_argument("--hidden", type=int, default=8)
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--neighbours", type=int, default=0, metavar="N",
+                    help="start each centre's evolution from the best of its fit and the N nearest built centres' "
+                    "behaviours on its training starts (default 0: from the fit)")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--more", type=int, default=0, metavar="G",
                     help="with --out FILE (built): evolve G more generations for each centre below --below")
@@ -235,8 +211,8 @@ def main() -> None:
                          and args.hidden >= 1 and args.steps >= 0 and 0 < args.height <= 20):
         ap.error("needs --centres, --train, --generations, --hidden ≥ 1, --popsize ≥ 2, --steps ≥ 0, --sigma > 0, "
                  "0 < --max-tilt ≤ 180, 0 < --radius ≤ 90, 0 < --height ≤ 20")
-    if args.late < 0 or args.more < 0:
-        ap.error("--late and --more must be ≥ 0")
+    if args.late < 0 or args.more < 0 or args.neighbours < 0:
+        ap.error("--late, --more and --neighbours must be ≥ 0")
     import torch
 
     torch.set_num_threads(1)  # small nets: threads cost more than they give

@@ -150,16 +150,19 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--drops", required=True, metavar="FILE|random:N|euler:N",
                    help="a JSON list of drops {roll_deg, pitch_deg, yaw_deg, height_m}, random:N (orientations "
                    "uniform over all rotations) or euler:N (roll, pitch and yaw each uniform over the circle)")
-    e.add_argument("--policy", metavar="library|shipped|passive|stand|rules|optimum|FILE",
+    e.add_argument("--policy", metavar="library|shipped|caps|passive|stand|rules|optimum|FILE",
                    help="what the cat does while it falls and lands: library (the shipped motion library: the "
                    "motion that lands most often near the attitude the IMU gives at release; the default; on a "
                    "--design with its own vote, that one: 4ms-paw's and the study's, taken on the 4 ms-paw cat), "
                    "shipped "
-                   "(the evolved nets), passive (hold the pose at release), stand (go to the stand pose), rules (the "
+                   "(the evolved nets), caps (the shipped cap policy: closed-loop nets of the paper's size imitated "
+                   "from the library's motions, then evolved; built for 1 m), passive (hold the pose at release), "
+                   "stand (go to the stand pose), rules (the "
                    "hand-written spine rule of the nearest training orientation), optimum (the best open-loop "
                    "whole-body motion CMA-ES finds for each drop; slow; with --warm-start, searched from the library's "
                    "motions too: the ceiling), a policy file from `felis "
-                   "train landing` (.npz) or a library from `felis train landing-library` (.json)")
+                   "train landing` (.npz), a library from `felis train landing-library` (.json) or a cap policy "
+                   "from bench/landing_caps.py (.json)")
     e.add_argument("--generations", type=int, default=30, help="optimum: CMA-ES generations per start (default 30)")
     e.add_argument("--population", type=int, default=12, help="optimum: CMA-ES population (default 12)")
     e.add_argument("--restarts", type=int, default=0, help="optimum: further starts from the next seeds (default 0)")

@@ -27,8 +27,10 @@ def register(sub) -> None:
     run.add_argument("--roll", type=finite, default=0.0, help="with --height: initial roll (deg, default 0)")
     run.add_argument("--pitch", type=finite, default=0.0, help="with --height: initial pitch (deg, default 0)")
     run.add_argument("--yaw", type=finite, default=0.0, help="with --height: initial yaw (deg, default 0)")
-    run.add_argument("--policy", type=Path, metavar="library|shipped|FILE",
+    run.add_argument("--policy", type=Path, metavar="library|shipped|caps|FILE",
                      help="landing: library (the shipped motion library, the default), shipped (the evolved nets), "
+                     "caps (the shipped cap policy: closed-loop nets imitated from the library, then evolved; or "
+                     "a file from bench/landing_caps.py), "
                      "a policy file from `felis train landing` (.npz), a motion library from `felis train "
                      "landing-library` (.json) or a whole-body motion (.json) searched for one drop "
                      "(docs/landing.md)")

@@ -11,9 +11,10 @@ net dispatches. This module makes such behaviours from the library and measures 
    score over drops of a cap round the motion's start (`cap_drops`); the score is the per-drop optimum's
    (`felis.learning.landing.optimum.score`: training's landing fitness, 3 more for a landing), every population a
    single batch of the simulation (`run_population`).
-3. **Dispatch** (`CapPolicy`): behaviours evolved over caps round K centres; at release each cat takes the behaviour
-   whose centre is nearest the up axis its IMU reports, mirrored (`mirror_inputs`, `mirror_velocities`) for a
-   start in the other half of the sphere, as the library's shelves are.
+3. **Dispatch** (`felis.learning.landing.cap_policy`, the inference side that controllers import: `CapPolicy` for a
+   batch, `CapRule` for one cat, the file format): behaviours evolved over caps round K centres; at release each cat
+   takes the behaviour whose centre is nearest the up axis its IMU reports, mirrored (`mirror_inputs`,
+   `mirror_velocities`) for a start in the other half of the sphere, as the library's shelves are.
 
 `Late` starts any of these k ticks late (the joints held meanwhile): the latency a servo bus adds.
 
@@ -27,30 +28,11 @@ from __future__ import annotations
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.learning.landing.library import up_axis
+from felis.learning.landing.cap_policy import genome, nearest_centre, with_genome
 from felis.learning.landing.library_build import up_drop
 from felis.learning.landing.motion import DT  # the control tick (s): a motion's table has one row a tick
 from felis.learning.landing.optimum import evaluate
 from felis.learning.landing.policy import KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
-
-# Mirror images (left ↔ right; the library's `mirror_motion` for a closed loop): every joint axis is the same on both
-# sides, so a mirrored state has the yaw joints' and the legs' rolls negated, left and right legs swapped, and the
-# body's roll negated. IT: spine pitch, yaw, tail pitch, yaw, roll, pitch, height, then fl, fr, hl, hr (pitch,
-# roll); velocities: spine, tail, then fl, fr, hl, hr (pitch, roll).
-_IT_FROM = np.array([0, 1, 2, 3, 4, 5, 6, 9, 10, 7, 8, 13, 14, 11, 12])
-_IT_SIGN = np.array([1, -1, 1, -1, -1, 1, 1, 1, -1, 1, -1, 1, -1, 1, -1], dtype=float)
-_V_FROM = np.array([0, 1, 2, 3, 6, 7, 4, 5, 10, 11, 8, 9])
-_V_SIGN = np.array([1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], dtype=float)
-
-
-def mirror_inputs(it: np.ndarray) -> np.ndarray:
-    """IT (B, 15) of the mirror image of the cats with IT ``it`` (an involution)."""
-    return np.asarray(it)[:, _IT_FROM] * _IT_SIGN
-
-
-def mirror_velocities(v: np.ndarray) -> np.ndarray:
-    """Joint velocities (B, 12) of the mirror image of velocities ``v`` (an involution)."""
-    return np.asarray(v)[:, _V_FROM] * _V_SIGN
 
 
 def fit(it: np.ndarray, v: np.ndarray, hidden: int, steps: int, seed: int = 0, lr: float = 1e-2):
@@ -131,12 +113,6 @@ def cap_drops(u: np.ndarray, deg: float, n: int, height_m: float, rng: np.random
     return [up_drop(v, height_m) for v in ups]
 
 
-def nearest_centre(centres: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Index of the centre (K, 3; u_y ≥ 0) nearest each up axis ``u`` (B, 3), mirrored first where u_y < 0."""
-    u = np.where((u[:, 1] < 0)[:, None], u * np.array([1.0, -1.0, 1.0]), u)
-    return np.argmax(u @ np.asarray(centres).T, axis=1)
-
-
 def cell_drops(centres: np.ndarray, k: int, deg: float, n: int, height_m: float, rng: np.random.Generator) -> list:
     """``n`` drops (yaw 0) of centre ``k``'s cell within ``deg`` of it: starts drawn uniformly over that cap,
     mirrored into u_y ≥ 0, kept when ``k`` is their nearest centre (the starts `CapPolicy` gives its behaviour).
@@ -152,26 +128,6 @@ def cell_drops(centres: np.ndarray, k: int, deg: float, n: int, height_m: float,
         if len(out) >= n:
             return out[:n]
     raise ParameterError(f"caps: the cap of {deg:g}° round centre {k} holds fewer than {n} starts of its cell")
-
-
-def genome(b: SimpleBehaviour) -> np.ndarray:
-    """The behaviour's weights as one vector: each unit's W1 then W2, spine, tail, legs."""
-    return np.concatenate([w.ravel() for p in PARTS for w in (getattr(b, p).W1, getattr(b, p).W2)])
-
-
-def with_genome(b: SimpleBehaviour, g: np.ndarray) -> SimpleBehaviour:
-    """``b`` with the weights of ``g`` (`genome`'s order); inputs, hidden sizes and scales kept."""
-    size = sum(getattr(b, p).W1.size + getattr(b, p).W2.size for p in PARTS)
-    if len(g) != size:
-        raise ParameterError(f"caps: a genome of {len(g)} weights for a behaviour of {size}")
-    units, i = [], 0
-    for p in PARTS:
-        u = getattr(b, p)
-        n1, n2 = u.W1.size, u.W2.size
-        units.append(GeneUnit(p, u.inputs, u.hidden, g[i:i + n1].reshape(u.W1.shape),
-                              g[i + n1:i + n1 + n2].reshape(u.W2.shape), u.scale))
-        i += n1 + n2
-    return SimpleBehaviour(*units).check()
 
 
 class Late:
@@ -234,37 +190,3 @@ def evolve(sim, start: SimpleBehaviour, drops, generations: int, popsize: int, s
     return best, best_f, rollouts, history
 
 
-class CapPolicy:
-    """Behaviours over caps (module doc): cat b takes, at its first tick, ``behaviours[k]`` with ``centres[k]``
-    (up axes with u_y ≥ 0) the nearest its up axis, mirrored when u_y < 0, and keeps it. A `LandingBatch` policy
-    (``(IT, t, rows) -> velocities``); one instance per batch run."""
-
-    def __init__(self, centres: np.ndarray, behaviours):
-        self.centres = np.asarray(centres, dtype=float).reshape(-1, 3)
-        self.behaviours = list(behaviours)
-        if len(self.centres) != len(self.behaviours) or not self.behaviours:
-            raise ParameterError(f"caps: {len(self.centres)} centres for {len(self.behaviours)} behaviours")
-        if np.any(self.centres[:, 1] < -1e-9):
-            raise ParameterError("caps: the centres lie in the half u_y ≥ 0 (the other half runs mirrored)")
-        self.choice: dict[int, tuple[int, bool]] = {}
-
-    def choose(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(behaviour index (B,), mirrored (B,)) for up axes ``u`` (B, 3)."""
-        return nearest_centre(self.centres, u), u[:, 1] < 0
-
-    def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        new = [i for i, r in enumerate(rows) if t[i] < DT / 2 or int(r) not in self.choice]
-        if new:
-            k, flip = self.choose(up_axis(it[new, 4] * np.pi, it[new, 5] * (np.pi / 2)))
-            for i, kk, ff in zip(new, k, flip, strict=True):
-                self.choice[int(rows[i])] = (int(kk), bool(ff))
-        pick = np.array([self.choice[int(r)] for r in rows], dtype=int).reshape(-1, 2)
-        v = np.zeros((len(it), 12))
-        for k in np.unique(pick[:, 0]):
-            for f in (0, 1):
-                g = np.flatnonzero((pick[:, 0] == k) & (pick[:, 1] == f))
-                if g.size:
-                    x = mirror_inputs(it[g]) if f else it[g]
-                    out = self.behaviours[k].velocities_many(x)
-                    v[g] = mirror_velocities(out) if f else out
-        return v

@@ -50,7 +50,7 @@ RATE_HZ = 100.0
 MARGIN_S = 1.0  # after the fall: the 0.5 s window and 0.5 s more
 
 POLICIES = {"passive": "hold", "stand": "stand"}  # baseline name → controller name
-NAMED = (*POLICIES, "rules", "shipped", "library")
+NAMED = (*POLICIES, "rules", "shipped", "library", "caps")
 
 
 def check_timestep_ms(ms: float) -> float:
@@ -78,19 +78,37 @@ def default_policy() -> str:
     return "shipped" if shipped_policy().is_file() else "passive"
 
 
+def caps_path(policy: str) -> Path | None:
+    """The cap policy a policy names (``caps``: the shipped one, or a caps ``.json`` file), else None."""
+    from felis.learning.landing.cap_policy import SHIPPED_CAPS, is_caps_file
+
+    if policy == "caps":
+        return SHIPPED_CAPS
+    return Path(policy) if is_caps_file(policy) else None
+
+
 def library_path(policy: str) -> Path | None:
-    """The motion library a policy names (``library`` or a ``.json`` file), else None."""
+    """The motion library a policy names (``library`` or a ``.json`` file that is not a cap policy), else None."""
     from felis.learning.landing.library import DEFAULT_LIBRARY
 
     if policy == "library":
         return DEFAULT_LIBRARY
-    return Path(policy) if Path(policy).suffix.lower() == ".json" else None
+    return Path(policy) if Path(policy).suffix.lower() == ".json" and caps_path(policy) is None else None
 
 
 def check_policy(policy: str) -> str:
     """``policy`` if it can be run: a baseline (passive, stand), ``rules`` (the hand-written spine rule of
-    the nearest training orientation), ``shipped`` or a policy file; else a one-line ParameterError."""
+    the nearest training orientation), ``shipped``, ``library``, ``caps`` or a policy file; else a one-line
+    ParameterError."""
     if policy in POLICIES or policy == "rules":
+        return policy
+    caps = caps_path(policy)
+    if caps is not None:
+        from felis.learning.landing.cap_policy import load_caps
+
+        if not caps.exists():
+            raise ParameterError(f"--policy caps: no shipped cap policy {caps} (make one: bench/landing_caps.py)")
+        load_caps(caps)  # ParameterError: one line naming the file
         return policy
     lib = library_path(policy)
     if lib is not None:
@@ -127,6 +145,11 @@ def make_policy(policy: str, drop: Drop | None = None) -> Controller:
 
         rule = nearest_rule((drop.roll_deg, drop.pitch_deg, drop.yaw_deg) if drop else (180.0, 0.0, 0.0))
         return LandingController(rule, drop_height=drop.height_m if drop else None)
+    caps = caps_path(policy)
+    if caps is not None:
+        from felis.learning.landing.cap_policy import load_cap_rule
+
+        return LandingController(load_cap_rule(caps), drop_height=drop.height_m if drop else None)
     lib = library_path(policy)
     if lib is not None:
         from felis.learning.landing.library import LibraryRule, load_library
@@ -314,6 +337,11 @@ def batch_controller(spec, policy: str, drops: Sequence[Drop]):
 
     if policy in POLICIES or policy == "rules":
         return PerCat(spec, lambda b: make_policy(policy, drops[b]))
+    caps = caps_path(policy)
+    if caps is not None:
+        from felis.learning.landing.cap_policy import CapPolicy, load_caps
+
+        return LandingBatch(spec, [CapPolicy(*load_caps(caps)[1:])])
     lib = library_path(policy)
     if lib is not None:
         from felis.learning.landing.designs import joint_speeds

@@ -1,6 +1,8 @@
 """`felis.learning.landing.caps`: closed-loop behaviours imitated from library motions, evolved over caps of starts,
 dispatched by the start's up axis, mirrored for the other half of the sphere."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -29,6 +31,7 @@ def test_a_genome_round_trips_and_a_population_runs_as_its_members_alone():
     each member's own scores and verdicts, as one batch of one behaviour does; a genome of the wrong length is one
     line."""
     from felis.errors import ParameterError
+    from felis.learning.landing import cap_policy
     from felis.learning.landing import caps as caps
     from felis.learning.landing.designs import design_sim
     from felis.learning.landing.policy import KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
@@ -37,13 +40,13 @@ def test_a_genome_round_trips_and_a_population_runs_as_its_members_alone():
     units = [GeneUnit(p, tuple(range(KINDS[p].n_available)), 3, rng.normal(0, 0.5, (3, KINDS[p].n_available + 1)),
                       rng.normal(0, 0.5, (len(KINDS[p].outputs), 4)), MAX_SPEED) for p in PARTS]
     b = SimpleBehaviour(*units).check()
-    g = caps.genome(b)
-    same = caps.with_genome(b, g.copy())
+    g = cap_policy.genome(b)
+    same = cap_policy.with_genome(b, g.copy())
     it = rng.uniform(-1, 1, (7, 15))
     assert np.array_equal(same.velocities_many(it), b.velocities_many(it))
-    other = caps.with_genome(b, g + rng.normal(0, 0.3, g.shape))
+    other = cap_policy.with_genome(b, g + rng.normal(0, 0.3, g.shape))
     with pytest.raises(ParameterError, match="a genome of"):
-        caps.with_genome(b, g[:-1])
+        cap_policy.with_genome(b, g[:-1])
     drops = [Drop(0.0, 0.0, 0.0, 0.3), Drop(40.0, -20.0, 0.0, 0.3)]
     sim = design_sim("cat", nthread=1)
     try:
@@ -122,16 +125,16 @@ def _random_behaviour(rng, hidden=3):
 
 
 def test_mirroring_is_an_involution_that_swaps_the_sides():
-    from felis.learning.landing import caps
+    from felis.learning.landing import cap_policy
 
     rng = np.random.default_rng(0)
     it, v = rng.normal(size=(4, 15)), rng.normal(size=(4, 12))
-    assert np.array_equal(caps.mirror_inputs(caps.mirror_inputs(it)), it)
-    assert np.array_equal(caps.mirror_velocities(caps.mirror_velocities(v)), v)
-    m = caps.mirror_inputs(it)
+    assert np.array_equal(cap_policy.mirror_inputs(cap_policy.mirror_inputs(it)), it)
+    assert np.array_equal(cap_policy.mirror_velocities(cap_policy.mirror_velocities(v)), v)
+    m = cap_policy.mirror_inputs(it)
     assert np.array_equal(m[:, 7], it[:, 9]) and np.array_equal(m[:, 8], -it[:, 10])  # fl ← fr, roll negated
     assert np.array_equal(m[:, 4], -it[:, 4]) and np.array_equal(m[:, 5], it[:, 5])  # body roll negated, pitch kept
-    w = caps.mirror_velocities(v)
+    w = cap_policy.mirror_velocities(v)
     assert np.array_equal(w[:, 1], -v[:, 1]) and np.array_equal(w[:, 10], v[:, 8]) and np.array_equal(w[:, 11],
                                                                                                       -v[:, 9])
 
@@ -141,7 +144,7 @@ def test_cap_policy_takes_the_nearest_centre_and_runs_a_mirror_start_as_the_mirr
     u_y < 0), and a behaviour run mirrored from a start scores what it scores from that start's mirror image (the
     cat is left–right symmetric); two centres and one behaviour is one line."""
     from felis.errors import ParameterError
-    from felis.learning.landing import caps
+    from felis.learning.landing import cap_policy
     from felis.learning.landing.designs import design_sim
     from felis.scenarios.drop import Drop
 
@@ -161,24 +164,24 @@ def test_cap_policy_takes_the_nearest_centre_and_runs_a_mirror_start_as_the_mirr
                                 margin_s=MARGIN_S)
             return [score(r, sim.standing_waist_m) for r in res]
 
-        pol = caps.CapPolicy(centres, bs)
+        pol = cap_policy.CapPolicy(centres, bs)
         run(pol, drops)
         assert [pol.choice[i] for i in range(4)] == [(0, False), (1, False), (1, True), (2, False)]
-        (plain,) = run(caps.CapPolicy(centres[1:2], bs[1:2]), [Drop(60.0, 15.0, 0.0, 0.3)])
-        (mirrored,) = run(caps.CapPolicy(centres[1:2], bs[1:2]), [Drop(-60.0, 15.0, 0.0, 0.3)])
+        (plain,) = run(cap_policy.CapPolicy(centres[1:2], bs[1:2]), [Drop(60.0, 15.0, 0.0, 0.3)])
+        (mirrored,) = run(cap_policy.CapPolicy(centres[1:2], bs[1:2]), [Drop(-60.0, 15.0, 0.0, 0.3)])
     finally:
         sim.close()
     assert abs(plain[0] - mirrored[0]) < 1e-3 and plain[1].landed == mirrored[1].landed
     assert plain[1].tilt_deg == pytest.approx(mirrored[1].tilt_deg, abs=0.05)
     with pytest.raises(ParameterError, match="2 centres for 1 behaviours"):
-        caps.CapPolicy(centres[:2], bs[:1])
+        cap_policy.CapPolicy(centres[:2], bs[:1])
     with pytest.raises(ParameterError, match="half u_y ≥ 0"):
-        caps.CapPolicy([[0.0, -1.0, 0.0]], bs[:1])
+        cap_policy.CapPolicy([[0.0, -1.0, 0.0]], bs[:1])
 
 
 def test_cell_drops_are_the_starts_the_dispatch_gives_that_centre():
     from felis.errors import ParameterError
-    from felis.learning.landing import caps
+    from felis.learning.landing import cap_policy, caps
     from felis.learning.landing.library import drop_up
     from felis.learning.landing.library_build import fibonacci_ups
 
@@ -188,7 +191,93 @@ def test_cell_drops_are_the_starts_the_dispatch_gives_that_centre():
         drops = caps.cell_drops(centres, k, 42.0, 40, 1.0, rng)
         u = np.array([drop_up(d) for d in drops])
         assert len(drops) == 40 and np.all(u[:, 1] >= 0) and all(d.yaw_deg == 0 for d in drops)
-        assert np.all(caps.nearest_centre(centres, u) == k)
+        assert np.all(cap_policy.nearest_centre(centres, u) == k)
         assert np.degrees(np.arccos(np.clip(u @ centres[k], -1, 1))).max() <= 42.0 + 1e-3
     with pytest.raises(ParameterError, match="fewer than 5 starts of its cell"):
         caps.cell_drops(np.array([[0, 0, 1.0], [0, 0, 1.0]]), 1, 10.0, 5, 1.0, rng)  # a twin takes its cell
+
+
+def test_a_cap_policy_file_is_a_policy_wherever_one_is_named(tmp_path):
+    """``caps`` names the shipped file; a caps file is told from a motion library by its format, so `check_policy`,
+    `make_policy` (one cat: `CapRule`), `batch_controller` (`CapPolicy`) and `felis run landing`'s controller all run
+    it; a library file stays a library."""
+    from felis.controllers import make_controller
+    from felis.controllers.landing import LandingBatch
+    from felis.learning.landing import cap_policy
+    from felis.learning.landing.evaluate import batch_controller, caps_path, check_policy, library_path, make_policy
+    from felis.learning.landing.library import DEFAULT_LIBRARY
+    from felis.scenarios.drop import Drop
+    from felis.spec import load_spec
+
+    assert cap_policy.is_caps_file(cap_policy.SHIPPED_CAPS) and not cap_policy.is_caps_file(DEFAULT_LIBRARY)
+    assert not cap_policy.is_caps_file(tmp_path / "none.json")
+    copy = tmp_path / "mine.json"
+    copy.write_bytes(cap_policy.SHIPPED_CAPS.read_bytes())
+    for name in ("caps", str(copy)):
+        assert check_policy(name) == name and library_path(name) is None and caps_path(name) is not None
+        assert isinstance(make_policy(name, Drop(0.0, 0.0, 0.0, 1.0)).policy, cap_policy.CapRule)
+        b = batch_controller(load_spec("cat"), name, [Drop(0.0, 0.0, 0.0, 1.0)])
+        assert isinstance(b, LandingBatch) and isinstance(b.policies[0], cap_policy.CapPolicy)
+        assert isinstance(make_controller("landing", policy=Path(name), drop_height=1.0).policy, cap_policy.CapRule)
+    assert library_path(str(DEFAULT_LIBRARY)) == DEFAULT_LIBRARY and caps_path(str(DEFAULT_LIBRARY)) is None
+
+
+def test_a_cap_rule_is_its_batch_for_one_cat():
+    """`CapRule` picks at its first call what `CapPolicy` picks for that cat (mirrored in the other half) and keeps
+    it: the same velocities, to rounding, tick after tick, while the attitude changes."""
+    from felis.learning.landing import cap_policy
+
+    _, centres, behaviours = cap_policy.load_caps(cap_policy.SHIPPED_CAPS)
+    rng = np.random.default_rng(5)
+    it = rng.uniform(-0.9, 0.9, (2, 6, 15))  # two cats, six ticks each
+    it[0, :, 4] = np.abs(it[0, :, 4])  # the first rolled one way (u_y > 0)
+    it[1, :, 4] = -np.abs(it[1, :, 4])  # the second the other way: u_y < 0, mirrored
+    batch = cap_policy.CapPolicy(centres, behaviours)
+    rules = [cap_policy.CapRule(centres, behaviours) for _ in range(2)]
+    for k in range(6):
+        t = np.full(2, k * 0.01)
+        want = batch(it[:, k], t, np.arange(2))
+        got = np.array([rules[i](it[i, k], t[i]) for i in range(2)])
+        assert np.allclose(got, want, rtol=0, atol=1e-12) and np.abs(want).max() > 0.1
+    assert rules[0].batch.choice[0] == batch.choice[0] and rules[1].batch.choice[0] == batch.choice[1]
+    assert batch.choice[1][1] and not batch.choice[0][1]
+
+
+def _caps_doc(**edit) -> dict:
+    import json
+
+    from felis.learning.landing import cap_policy
+
+    d = json.loads(cap_policy.SHIPPED_CAPS.read_text())
+    d["caps"] = d["caps"][:2]
+    for k, v in edit.items():
+        d["caps"][0][k] = v
+    return d
+
+
+@pytest.mark.parametrize("edit, says", [
+    ({"genome": [0.0] * 5}, "a genome of 5 weights"),
+    ({"centre": [0.0, 0.5, 0.5]}, "not a unit vector"),
+    ({"centre": [0.0, -1.0, 0.0]}, "half u_y ≥ 0"),
+    ({"genome": None}, "caps: "),
+], ids=["short-genome", "centre-off-the-sphere", "centre-mirrored", "no-genome"])
+def test_a_bad_cap_policy_file_is_one_line_naming_it_where_a_policy_is_named(tmp_path, edit, says):
+    """`felis eval landing --policy FILE` and `felis run landing --policy FILE` refuse a broken caps file in one line
+    that names it and says what is wrong (not as a broken motion library), and run nothing."""
+    import json
+    import subprocess
+    import sys
+
+    p = tmp_path / "bad.json"
+    p.write_text(json.dumps(_caps_doc(**edit)))
+    nan = tmp_path / "nan.json"
+    d = _caps_doc()
+    d["caps"][1]["genome"][3] = float("nan")
+    nan.write_text(json.dumps(d))
+    for f, what in ((p, says), (nan, "not a finite number")):
+        for argv in (["eval", "landing", "--drops", "random:1", "--policy", str(f)],
+                     ["run", "landing", "--robot", "cat", "--height", "1", "--policy", str(f)]):
+            r = subprocess.run([sys.executable, "-m", "felis", *argv], capture_output=True, text=True, timeout=120)
+            err = r.stderr.strip()
+            assert r.returncode != 0 and r.stdout == "" and "\n" not in err, err
+            assert f"caps: {f}" in err and what in err and "library" not in err, err

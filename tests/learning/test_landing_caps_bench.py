@@ -52,6 +52,27 @@ def test_build_then_resume_then_evaluate(tmp_path):
         assert sum(b["landed"] for b in v["by_tilt"].values()) == v["landed"][0]
 
 
+def test_neighbours_start_each_centre_from_the_best_of_its_fit_and_the_centres_built_before(tmp_path):
+    """``--neighbours 2``: the first centre has nothing built before it and starts from its fit; each later one
+    scores its fit and the (up to) two nearest built centres' behaviours on its training starts, starts from the
+    best, records which and what it landed, and counts those rollouts; a resume with another N is refused."""
+    out = tmp_path / "caps.json"
+    cmd = [sys.executable, str(BENCH), "--out", str(out), "--centres", "48", "--max-tilt", "40", "--train", "2",
+           "--generations", "1", "--popsize", "2", "--steps", "10", "--radius", "30", "--neighbours", "2"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(out.read_text())
+    assert d["settings"]["neighbours"] == 2 and len(d["caps"]) == 3
+    first, *rest = d["caps"]
+    assert "start" not in first and first["rollouts"] == 2 + 2 * 2
+    for k, c in enumerate(rest, start=1):
+        assert c["start"] in ["fit"] + [f"centre {j + 1}" for j in range(k)], c["start"]
+        assert 0 <= c["start_lands_train"] <= 2 and c["rollouts"] == 2 + 2 * 2 + 2 * min(k, 2)
+        assert f"evolved (from {c['start']}, which lands {c['start_lands_train']})" in r.stdout
+    r = subprocess.run([*cmd[:-1], "1", "--resume"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1 and "built with other settings" in r.stderr
+
+
 @pytest.mark.parametrize("text, says", [("{", "Expecting"), ('{"format": "x"}', "not a felis-landing-caps file"),
                                         ('{"format": "felis-landing-caps", "settings": {"hidden": 8}, "caps": []}',
                                          "holds no behaviour")])
@@ -84,28 +105,22 @@ def test_the_shipped_cap_policy_lands_what_the_docs_say():
     """`learning/weights/landing_caps-1m.json`: 9 behaviours, six evolved further; run again on `random:100` seeds 0 and
     1 from 1 m it lands what its recorded evaluation says (and by tilt), and docs/landing.md "A cap policy" and the
     README quote those counts."""
-    from felis.controllers.landing import LandingBatch
-    from felis.learning.landing.caps import CapPolicy
-    from felis.learning.landing.designs import design_sim
-    from felis.learning.landing.evaluate import by_tilt
+    from felis.learning.landing.cap_policy import SHIPPED_CAPS
+    from felis.learning.landing.evaluate import by_tilt, run_drops
     from felis.scenarios.drop import drops_from
 
     root = BENCH.parents[1]
     path = root / "learning" / "weights" / "landing_caps-1m.json"
+    assert path == SHIPPED_CAPS
     d, centres, behaviours = load_bench("landing_caps").load_caps(path)
     assert len(behaviours) == 9 and sum(1 for c in d["caps"] if c.get("more")) == 6
     assert all(c["more"][0]["score"] == c["score"] and c["more"][0]["evolved_lands_train"] == c["evolved_lands_train"]
                for c in d["caps"] if c.get("more"))
     ev = d["evaluated"]["after_more"]["seeds"]
-    sim = design_sim("cat")
-    try:
-        for s in ("0", "1"):
-            drops = drops_from("random:100", int(s), 1.0)
-            out = sim.run(drops, LandingBatch(sim.spec, [CapPolicy(centres, behaviours)]))
-            landed = [bool(o.landed) for o in out]
-            assert sum(landed) == ev[s]["caps"]["landed"][0] and by_tilt(drops, landed) == ev[s]["caps"]["by_tilt"]
-    finally:
-        sim.close()
+    for s in ("0", "1"):  # as `felis eval landing --policy caps --drops random:100 --seed S` runs it
+        drops = drops_from("random:100", int(s), 1.0)
+        landed = [bool(o.landed) for o in run_drops(drops, "caps")]
+        assert sum(landed) == ev[s]["caps"]["landed"][0] and by_tilt(drops, landed) == ev[s]["caps"]["by_tilt"]
     before = d["evaluated"]["before_more"]["seeds"]
     text = " ".join((root / "docs" / "landing.md").read_text().split())
 
