@@ -18,12 +18,12 @@ from its genome on the same starts, and keeps the result where it scores higher 
 
 Evaluate (``--policy FILE``): on ``--drops`` (``random:100`` by default) for each ``--seeds`` S at the file's height,
 the cap policy and the shipped library (``felis eval landing``'s default), each started 0…``--late`` ticks late
-(the joints held meanwhile), landed of the drops by the one verdict.
+(the joints held meanwhile), landed of the drops by the one verdict; ``--record NAME`` keeps it in the file.
 
     python bench/landing_caps.py --out FILE [--height 1] [--centres 24] [--max-tilt 130] [--radius 42] [--train 16] \\
         [--generations 30] [--popsize 16] [--sigma 0.1] [--hidden 8] [--steps 1500] [--seed 0] [--neighbours N] \\
         [--resume] [--more G [--below N]]
-    python bench/landing_caps.py --policy FILE [--drops random:100] [--seeds 0 1] [--late 2] [--json]
+    python bench/landing_caps.py --policy FILE [--drops random:100] [--seeds 0 1] [--late 2] [--json] [--record NAME]
 
 The build takes about 3 min a centre on 2 cores at the defaults (7 696 rollouts); the evaluation about 1 min.
 """
@@ -74,6 +74,8 @@ def build(args) -> None:
         doc = {"format": FORMAT, "version": 1, "made_by": made_by, "settings": settings, "caps": done}
         if more_by:
             doc["more_by"] = more_by
+        if d.get("evaluated"):  # evaluations recorded before (--record NAME): kept, named for what they measured
+            doc["evaluated"] = d["evaluated"]
         tmp = out.with_suffix(out.suffix + ".tmp")
         tmp.write_text(json.dumps(doc, indent=1))
         tmp.replace(out)
@@ -175,6 +177,18 @@ def evaluate_caps(args) -> dict:
     return res
 
 
+def record_evaluation(path: str, name: str, res: dict, argv: str) -> None:
+    """Keep an evaluation in the caps file it evaluated, under ``evaluated[name]`` with the command that made it
+    (the file written whole, atomically; its behaviours untouched)."""
+    p = Path(path)
+    d = json.loads(p.read_text())
+    d.setdefault("evaluated", {})[name] = {"command": "python bench/landing_caps.py " + argv,
+                                            **{k: v for k, v in res.items() if k != "policy"}}
+    tmp = p.with_suffix(p.suffix + ".tmp")
+    tmp.write_text(json.dumps(d, indent=1))
+    tmp.replace(p)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", help="build a cap policy into this file")
@@ -202,6 +216,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--late", type=int, default=2)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--record", metavar="NAME", help="with --policy FILE: keep the evaluation in FILE as "
+                    "evaluated.NAME (with this command)")
     args = ap.parse_args()
     args.argv = sys.argv[1:]
     if (args.out is None) == (args.policy is None):
@@ -211,6 +227,8 @@ def main() -> None:
                          and args.hidden >= 1 and args.steps >= 0 and 0 < args.height <= 20):
         ap.error("needs --centres, --train, --generations, --hidden ≥ 1, --popsize ≥ 2, --steps ≥ 0, --sigma > 0, "
                  "0 < --max-tilt ≤ 180, 0 < --radius ≤ 90, 0 < --height ≤ 20")
+    if args.record is not None and args.policy is None:
+        ap.error("--record keeps an evaluation: give --policy FILE")
     if args.late < 0 or args.more < 0 or args.neighbours < 0:
         ap.error("--late, --more and --neighbours must be ≥ 0")
     import torch
@@ -221,6 +239,8 @@ def main() -> None:
             build(args)
             return
         res = evaluate_caps(args)
+        if args.record:
+            record_evaluation(args.policy, args.record, res, " ".join(args.argv))
     except ParameterError as e:
         raise SystemExit(str(e)) from None
     if args.json:

@@ -41,8 +41,8 @@ def test_build_then_resume_then_evaluate(tmp_path):
     r = subprocess.run([*cmd[:3], str(tmp_path / "none.json"), *cmd[4:], "--more", "1"], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 1 and "--more continues a built file" in r.stderr
-    r = subprocess.run([sys.executable, str(BENCH), "--policy", str(out), "--drops", "random:6", "--seeds", "0",
-                        "--late", "1", "--json"], capture_output=True, text=True, timeout=300)
+    ev = ["--policy", str(out), "--drops", "random:6", "--seeds", "0", "--late", "1", "--json", "--record", "six"]
+    r = subprocess.run([sys.executable, str(BENCH), *ev], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
     row = res["seeds"]["0"]
@@ -50,6 +50,15 @@ def test_build_then_resume_then_evaluate(tmp_path):
     for v in row.values():
         assert len(v["landed"]) == 2 and all(0 <= n <= 6 for n in v["landed"])
         assert sum(b["landed"] for b in v["by_tilt"].values()) == v["landed"][0]
+    kept = json.loads(out.read_text())  # --record: the evaluation in the file, its behaviours untouched
+    assert kept["evaluated"]["six"] == {"command": "python bench/landing_caps.py " + " ".join(ev),
+                                        **{k: v for k, v in res.items() if k != "policy"}}
+    assert kept["caps"] == d2["caps"]
+    r = subprocess.run([*cmd, "--more", "1"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and json.loads(out.read_text())["evaluated"] == kept["evaluated"]  # kept by --more
+    r = subprocess.run([sys.executable, str(BENCH), "--out", str(out), "--record", "x"], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and "--record keeps an evaluation" in r.stderr
 
 
 def test_neighbours_start_each_centre_from_the_best_of_its_fit_and_the_centres_built_before(tmp_path):
