@@ -14,7 +14,8 @@ Build (``--out FILE``): the centres are a Fibonacci grid of ``--centres N`` poin
 
 The file is written after each centre; ``--resume`` keeps the centres a file of the same settings holds. ``--more G``
 (same settings) evolves G more generations for each centre landing fewer than ``--below N`` of its training starts,
-from its genome on the same starts, and keeps the result where it scores higher (the file records each round).
+from its genome on the same starts (with ``--neighbours N``: from the best there of it and the N nearest other
+centres' behaviours, on either side), and keeps the result where it scores higher (the file records each round).
 
 Evaluate (``--policy FILE``): on ``--drops`` (``random:100`` by default) for each ``--seeds`` S at the file's height,
 the cap policy and the shipped library (``felis eval landing``'s default), each started 0…``--late`` ticks late
@@ -92,18 +93,29 @@ def build(args) -> None:
                     continue
                 tk = time.perf_counter()
                 train = training(k)
-                start = with_genome(t, np.array(cap["genome"], dtype=float))
-                best, f, rollouts, history = evolve(sim, start, train, args.more, args.popsize, args.sigma,
+                # from its own genome or, with --neighbours N, the best on its starts of it and the N nearest
+                # other centres' behaviours (on both sides now: the whole grid is built)
+                others = [j for j in np.argsort(-(centres @ centres[k])) if j != k][:args.neighbours]
+                cands = [with_genome(t, np.array(done[j]["genome"], dtype=float)) for j in [k, *others]]
+                i, started = 0, {}
+                if len(cands) > 1:
+                    scores, lands = run_population(sim, cands, train)
+                    i = int(np.argmax(scores.mean(axis=1)))
+                    started = {"start": "own" if i == 0 else f"centre {int(others[i - 1]) + 1}",
+                               "start_lands_train": int(lands[i].sum())}
+                best, f, rollouts, history = evolve(sim, cands[i], train, args.more, args.popsize, args.sigma,
                                                     args.seed + 1 + len(cap.get("more", [])))
                 evolved = run_population(sim, [best], train)[1][0]
                 cap.setdefault("more", []).append({"generations": args.more, "score_before": cap["score"],
-                                                   "lands_train_before": cap["evolved_lands_train"],
+                                                   "lands_train_before": cap["evolved_lands_train"], **started,
                                                    "score": round(f, 4),
-                                                   "evolved_lands_train": int(evolved.sum()), "rollouts": rollouts,
+                                                   "evolved_lands_train": int(evolved.sum()),
+                                                   "rollouts": rollouts + len(train) * (len(cands) - 1),
                                                    "best_after_generation": history,
                                                    "seconds": round(time.perf_counter() - tk)})
+                frm = f" (from {started['start']}, which lands {started['start_lands_train']})" if started else ""
                 print(f"centre {k + 1}/{len(centres)}: {cap['evolved_lands_train']} → {int(evolved.sum())} of its "
-                      f"{args.train} training starts after {args.more} more generations", flush=True)
+                      f"{args.train} training starts after {args.more} more generations{frm}", flush=True)
                 cap.update(evolved_lands_train=int(evolved.sum()), score=round(f, 4),
                            genome=[float(x) for x in genome(best)])
                 if not more_by or more_by[-1] != " ".join(args.argv):

@@ -80,6 +80,12 @@ def test_neighbours_start_each_centre_from_the_best_of_its_fit_and_the_centres_b
         assert f"evolved (from {c['start']}, which lands {c['start_lands_train']})" in r.stdout
     r = subprocess.run([*cmd[:-1], "1", "--resume"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 1 and "built with other settings" in r.stderr
+    r = subprocess.run([*cmd, "--more", "1", "--below", "3"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr  # --more with --neighbours: from the best of its own and its 2 nearest
+    for k, (a, b) in enumerate(zip(d["caps"], json.loads(out.read_text())["caps"], strict=True)):
+        (m,) = b["more"]
+        assert m["start"] in ["own"] + [f"centre {j + 1}" for j in range(3) if j != k], m["start"]
+        assert m["rollouts"] == 2 + 2 * 2 + 2 * 2 and b["score"] >= a["score"] == m["score_before"]
 
 
 @pytest.mark.parametrize("text, says", [("{", "Expecting"), ('{"format": "x"}', "not a felis-landing-caps file"),
