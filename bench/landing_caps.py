@@ -17,14 +17,16 @@ The file is written after each centre; ``--resume`` keeps the centres a file of 
 from its genome on the same starts (with ``--neighbours N``: from the best there of it and the N nearest other
 centres' behaviours, on either side), and keeps the result where it scores higher (the file records each round).
 
-Evaluate (``--policy FILE``): on ``--drops`` (``random:100`` by default) for each ``--seeds`` S at the file's height,
-the cap policy and the shipped library (``felis eval landing``'s default), each started 0…``--late`` ticks late
-(the joints held meanwhile), landed of the drops by the one verdict; ``--record NAME`` keeps it in the file.
+Evaluate (``--policy FILE``): on ``--drops`` (``random:100`` by default) for each ``--seeds`` S at the file's height
+(or ``--height``), the cap policy and the shipped library (``felis eval landing``'s default), each started
+0…``--late`` ticks late (the joints held meanwhile), landed of the drops by the one verdict; ``--record NAME`` keeps
+it in the file.
 
     python bench/landing_caps.py --out FILE [--height 1] [--centres 24] [--max-tilt 130] [--radius 42] [--train 16] \\
         [--generations 30] [--popsize 16] [--sigma 0.1] [--hidden 8] [--steps 1500] [--seed 0] [--neighbours N] \\
         [--resume] [--more G [--below N]]
-    python bench/landing_caps.py --policy FILE [--drops random:100] [--seeds 0 1] [--late 2] [--json] [--record NAME]
+    python bench/landing_caps.py --policy FILE [--drops random:100] [--seeds 0 1] [--late 2] [--height H] [--json] \\
+        [--record NAME]
 
 The build takes about 3 min a centre on 2 cores at the defaults (7 696 rollouts); the evaluation about 1 min.
 """
@@ -164,7 +166,7 @@ def evaluate_caps(args) -> dict:
     from felis.scenarios.drop import drops_from
 
     d, centres, behaviours = load_caps(args.policy)
-    h = float(d["settings"]["height_m"])
+    h = float(d["settings"]["height_m"]) if args.height is None else args.height  # --height: from another height
     lib = load_library()
     sim = design_sim("cat")
     res = {"policy": str(args.policy), "height_m": h, "drops": args.drops, "behaviours": len(behaviours), "seeds": {}}
@@ -205,7 +207,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", help="build a cap policy into this file")
     ap.add_argument("--policy", help="evaluate the cap policy of this file")
-    ap.add_argument("--height", type=float, default=1.0)
+    ap.add_argument("--height", type=float, help="build: the drop height (m, default 1); evaluate: drops from this "
+                    "height instead of the file's")
     ap.add_argument("--centres", type=int, default=24, help="Fibonacci points on the sphere (default 24: 9 kept)")
     ap.add_argument("--max-tilt", type=float, default=130.0)
     ap.add_argument("--radius", type=float, default=42.0, help="the training starts lie this close to the centre")
@@ -234,9 +237,13 @@ def main() -> None:
     args.argv = sys.argv[1:]
     if (args.out is None) == (args.policy is None):
         ap.error("give --out FILE (build) or --policy FILE (evaluate)")
+    if args.height is not None and not 0 < args.height <= 20:
+        ap.error("--height must be in (0, 20] m")
+    if args.out and args.height is None:
+        args.height = 1.0
     if args.out and not (args.centres >= 1 and 0 < args.max_tilt <= 180 and 0 < args.radius <= 90
                          and args.train >= 1 and args.generations >= 1 and args.popsize >= 2 and args.sigma > 0
-                         and args.hidden >= 1 and args.steps >= 0 and 0 < args.height <= 20):
+                         and args.hidden >= 1 and args.steps >= 0):
         ap.error("needs --centres, --train, --generations, --hidden ≥ 1, --popsize ≥ 2, --steps ≥ 0, --sigma > 0, "
                  "0 < --max-tilt ≤ 180, 0 < --radius ≤ 90, 0 < --height ≤ 20")
     if args.record is not None and args.policy is None:

@@ -27,7 +27,7 @@ from felis.learning.landing.motion import DT  # the control tick (s)
 from felis.learning.landing.policy import KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
 
 FORMAT = "felis-landing-caps"
-SHIPPED_CAPS = Path(__file__).parents[1] / "weights" / "landing_caps-1m.json"  # ``--policy caps``
+SHIPPED_CAPS = Path(__file__).parents[1] / "weights" / "landing_caps48-1m.json"  # ``--policy caps``
 
 # Mirror images (left ↔ right; the library's `mirror_motion` for a closed loop): every joint axis is the same on both
 # sides, so a mirrored state has the yaw joints' and the legs' rolls negated, left and right legs swapped, and the

@@ -120,21 +120,19 @@ def test_the_shipped_cap_policy_lands_what_the_docs_say():
     """`learning/weights/landing_caps-1m.json`: 9 behaviours, six evolved further; run again on `random:100` seeds 0 and
     1 from 1 m it lands what its recorded evaluation says (and by tilt), and docs/landing.md "A cap policy" and the
     README quote those counts."""
-    from felis.learning.landing.cap_policy import SHIPPED_CAPS
     from felis.learning.landing.evaluate import by_tilt, run_drops
     from felis.scenarios.drop import drops_from
 
     root = BENCH.parents[1]
     path = root / "learning" / "weights" / "landing_caps-1m.json"
-    assert path == SHIPPED_CAPS
     d, centres, behaviours = load_bench("landing_caps").load_caps(path)
     assert len(behaviours) == 9 and sum(1 for c in d["caps"] if c.get("more")) == 6
     assert all(c["more"][0]["score"] == c["score"] and c["more"][0]["evolved_lands_train"] == c["evolved_lands_train"]
                for c in d["caps"] if c.get("more"))
     ev = d["evaluated"]["after_more"]["seeds"]
-    for s in ("0", "1"):  # as `felis eval landing --policy caps --drops random:100 --seed S` runs it
+    for s in ("0", "1"):  # as `felis eval landing --policy FILE --drops random:100 --seed S` runs it
         drops = drops_from("random:100", int(s), 1.0)
-        landed = [bool(o.landed) for o in run_drops(drops, "caps")]
+        landed = [bool(o.landed) for o in run_drops(drops, str(path))]
         assert sum(landed) == ev[s]["caps"]["landed"][0] and by_tilt(drops, landed) == ev[s]["caps"]["by_tilt"]
     before = d["evaluated"]["before_more"]["seeds"]
     text = " ".join((root / "docs" / "landing.md").read_text().split())
@@ -174,3 +172,80 @@ def test_the_shipped_cap_policy_lands_what_the_docs_say():
             f"{c0[0] - c0[2]} and {c1[0] - c1[2]}, the library {lib['0'][0] - lib['0'][2]} and "
             f"{lib['1'][0] - lib['1'][2]}.") in readme
     assert f"nine of them, chosen by the nearest centre, land {c0[0]} and {c1[0]} from 1 m" in readme
+
+
+def test_the_shipped_24_behaviour_cap_policy_lands_what_the_docs_say():
+    """`learning/weights/landing_caps48-1m.json` (``--policy caps``): built as docs/landing.md "Twenty-four behaviours"
+    says, each centre recording where its evolution started; run again on `random:100` seeds 0 and 1 from 1 m through
+    `felis eval landing`'s path it lands its recorded counts (and by tilt); every figure the docs and the README quote
+    is recounted from the file's recorded evaluations."""
+    from felis.learning.landing.cap_policy import SHIPPED_CAPS, load_caps
+    from felis.learning.landing.evaluate import by_tilt, run_drops
+    from felis.scenarios.drop import drops_from
+
+    root = BENCH.parents[1]
+    assert SHIPPED_CAPS == root / "learning" / "weights" / "landing_caps48-1m.json"
+    d, centres, behaviours = load_caps(SHIPPED_CAPS)
+    assert d["settings"] == {"height_m": 1.0, "centres": 48, "max_tilt_deg": 180.0, "radius_deg": 42.0, "train": 16,
+                             "generations": 30, "popsize": 16, "sigma": 0.1, "hidden": 8, "steps": 1500, "seed": 0,
+                             "neighbours": 3}
+    caps = d["caps"]
+    assert len(behaviours) == 24 and "more" not in d and "start" not in caps[0]
+    assert d["made_by"] == ("python bench/landing_caps.py --out learning/weights/landing_caps48-1m.json --centres 48 "
+                            "--max-tilt 180 --neighbours 3")
+    ev = d["evaluated"]
+    for s in ("0", "1"):
+        drops = drops_from("random:100", int(s), 1.0)
+        landed = [bool(o.landed) for o in run_drops(drops, "caps")]
+        row = ev["as_built"]["seeds"][s]["caps"]
+        assert sum(landed) == row["landed"][0] and by_tilt(drops, landed) == row["by_tilt"]
+    text = " ".join((root / "docs" / "landing.md").read_text().split())
+    readme = " ".join((root / "README.md").read_text().split())
+    a = ev["as_built"]["seeds"]
+    c0, c1, l0, l1 = a["0"]["caps"]["landed"], a["1"]["caps"]["landed"], a["0"]["library"]["landed"], \
+        a["1"]["library"]["landed"]
+    assert (c0[0], c1[0], l0[0], l1[0]) == (90, 83, 89, 75)  # the library's: `felis eval landing`'s figures
+    assert f"| **cap policy, 24 behaviours (`--policy caps`)** | **{c0[0]}** | **{c1[0]}** |" in text
+    assert f"| … started 1 / 2 ticks late | {c0[1]} / {c0[2]} | {c1[1]} / {c1[2]} |" in text
+    assert f"| … started 1 / 2 ticks late | {l0[1]} / {l0[2]} | {l1[1]} / {l1[2]} |" in text
+    for s in ("0", "1"):
+        for name, label in (("caps", "cap policy"), ("library", "library")):
+            bt = a[s][name]["by_tilt"]
+            assert f"| {label}, seed {s} | " + " | ".join(f"{b['landed']}/{b['total']}" for b in bt.values()) + \
+                " |" in text
+    held = {s: (row["caps"]["landed"][0], row["library"]["landed"][0])
+            for e in ("heldout_2_7", "heldout_10_12") for s, row in ev[e]["seeds"].items()}
+    first = [held[str(s)][0] for s in range(2, 8)]
+    lib = [held[str(s)][1] for s in range(2, 8)]
+    mean, lmean = round(sum(first) / 6, 1), round(sum(lib) / 6, 1)
+    later = [held[str(s)][0] for s in (10, 11, 12)]
+    assert (mean, lmean) == (85.7, 70.2) and later == [89, 83, 80]
+    assert ("| cap policy, 24 behaviours | " + " | ".join(map(str, first)) + f" | {mean} | "
+            + " | ".join(map(str, later)) + " |") in text
+    assert ("| motion library | " + " | ".join(map(str, lib)) + f" | {lmean} | "
+            + " | ".join(str(held[str(s)][1]) for s in (10, 11, 12)) + " |") in text
+    assert min(first + later) >= 75 and sum(x >= 75 for x in lib + [held[str(s)][1] for s in (10, 11, 12)]) == 3
+    tall = ev["at_3m"]
+    assert tall["height_m"] == 3.0 and tall["command"].endswith("--height 3 --late 0 --record at_3m")
+    assert [tall["seeds"][s]["caps"]["landed"][0] for s in ("0", "1")] == [1, 1]
+    assert [tall["seeds"][s]["library"]["landed"][0] for s in ("0", "1")] == [92, 81]  # `felis eval landing`'s
+    band = [a[s]["caps"]["by_tilt"]["150-180"] for s in ("0", "1")]
+    assert sum(b["landed"] for b in band) == 11 and sum(b["total"] for b in band) == 12
+    # the build: where each evolution started, what the cells land
+    assert sum(1 for c in caps[1:] if c["start"] != "fit") == 22 and sum(c["evolved_lands_train"] == 16
+                                                                         for c in caps) == 17
+    assert all(c["fitted_lands_train"] <= 1 for c in caps if c["tilt_deg"] > 86)
+    weak = sorted((c["evolved_lands_train"], c["tilt_deg"]) for c in caps)[:3]
+    assert weak == [(3, 88.8), (7, 148.7), (9, 121.4)]
+    assert round(sum(c["seconds"] for c in caps) / 60) == 74
+    assert [round(c["tilt_deg"]) for c in caps][::23] == [20, 160]
+    for s in ("land 90 and 83 from 1 m", "85.7 on average on seeds 2–7", "4 of 4 and 7 of 8",
+              "2 ticks late it loses 6 and 3, where the library loses 18 and 14",
+              "22 of the 23 centres built after the first", "17 of 24 land all 16", "74 min on 2 cores",
+              "land 1 and 1 of 100 from 3 m", "lands 11 of those 12 from 1 m"):
+        assert s in text, s
+    assert (c0[0] - c0[2], c1[0] - c1[2], l0[0] - l0[2], l1[0] - l1[2]) == (6, 3, 18, 14)
+    for s in ("land 90 and 83 from 1 m", "85.7 on average on seeds 2–7 (the library 70.2)",
+              "11 of the 12 starts tilted 150° or more", "lands 90 and 83 of `random:100` seeds 0 and 1",
+              "89, 83 and 80 on seeds 10–12", "it loses 6 and 3 (the library 18 and 14)", "From 3 m it lands 1 and 1"):
+        assert s in readme, s
