@@ -133,7 +133,7 @@ def build(args) -> None:
             train = training(k)
             # the evolution starts from the fit or, with --neighbours N, from the best on these starts of it and the
             # N nearest centres' evolved behaviours (a continuation over the sphere: the grid runs from upright down)
-            near = np.argsort(-(np.array([d["centre"] for d in done]).reshape(-1, 3) @ c))[:args.neighbours]
+            near = np.argsort(-(np.array([x["centre"] for x in done]).reshape(-1, 3) @ c))[:args.neighbours]
             cands = [b] + [with_genome(template(args.hidden), np.array(done[j]["genome"], dtype=float)) for j in near]
             scores, lands = run_population(sim, cands, train)
             i = int(np.argmax(scores.mean(axis=1)))

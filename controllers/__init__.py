@@ -106,7 +106,7 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
 def _landing(policy=None, drop_height: float | None = None) -> Controller:
     """The falling cat's landing policy: the shipped motion library (`felis.learning.landing.library`) if there is
     one, else the shipped evolved nets (seed 000), unless a policy is named: ``library``, ``shipped`` (the nets),
-    ``caps`` (the shipped cap policy, `felis.learning.landing.caps`), a caps ``.json`` file, a ``.npz`` file of
+    ``caps`` (the shipped cap policy, `felis.learning.landing.cap_policy`), a caps ``.json`` file, a ``.npz`` file of
     nets, a ``.json`` motion library, or a ``.json`` open-loop whole-body motion searched for one drop
     (`felis.learning.landing.motion`), which must run from the height it was searched for. ``drop_height``
     (m): the drop's, which the library times its motion by and where the robot reports no height (hardware) the
