@@ -12,19 +12,23 @@ Build (``--out FILE``): the centres are a Fibonacci grid of ``--centres N`` poin
    the N nearest centres' evolved behaviours (the grid runs from upright down, so a centre continues from the ones
    above it).
 
+With ``--shift-from FILE`` (a cap policy built for a lower height h₁) there is no fit: each centre starts from the best
+of FILE's N nearest behaviours (at least one) and the N nearest built centres', and every behaviour runs shifted, as
+if released from h₁ (`felis.learning.landing.cap_policy`, "Shifted"; the file records ``shift_from_m``).
+
 The file is written after each centre; ``--resume`` keeps the centres a file of the same settings holds. ``--more G``
 (same settings) evolves G more generations for each centre landing fewer than ``--below N`` of its training starts,
 from its genome on the same starts (with ``--neighbours N``: from the best there of it and the N nearest other
 centres' behaviours, on either side), and keeps the result where it scores higher (the file records each round).
 
 Evaluate (``--policy FILE``): on ``--drops`` (``random:100`` by default) for each ``--seeds`` S at the file's height
-(or ``--height``), the cap policy and the shipped library (``felis eval landing``'s default), each started
+(or ``--height``), the cap policy and the shipped library (``--policy library``), each started
 0…``--late`` ticks late (the joints held meanwhile), landed of the drops by the one verdict; ``--record NAME`` keeps
 it in the file.
 
     python bench/landing_caps.py --out FILE [--height 1] [--centres 24] [--max-tilt 130] [--radius 42] [--train 16] \\
         [--generations 30] [--popsize 16] [--sigma 0.1] [--hidden 8] [--steps 1500] [--seed 0] [--neighbours N] \\
-        [--resume] [--more G [--below N]]
+        [--shift-from FILE] [--resume] [--more G [--below N]]
     python bench/landing_caps.py --policy FILE [--drops random:100] [--seeds 0 1] [--late 2] [--height H] [--json] \\
         [--record NAME]
 
@@ -42,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.learning.landing.cap_policy import FORMAT, CapPolicy, genome, load_caps, template, with_genome
+from felis.learning.landing.cap_policy import FORMAT, CapPolicy, file_shift, genome, load_caps, template, with_genome
 from felis.learning.landing.caps import Late, cell_drops, evolve, fit, record, run_population
 from felis.learning.landing.designs import design_sim
 from felis.learning.landing.library import load_library
@@ -54,6 +58,15 @@ def build(args) -> None:
                 "radius_deg": args.radius, "train": args.train, "generations": args.generations,
                 "popsize": args.popsize, "sigma": args.sigma, "hidden": args.hidden, "steps": args.steps,
                 "seed": args.seed, **({"neighbours": args.neighbours} if args.neighbours else {})}
+    base = None  # --shift-from FILE: its behaviours, run shifted, start each centre's evolution (no fit)
+    if args.shift_from:
+        base, base_centres, base_behaviours = load_caps(args.shift_from)
+        bs = base["settings"]
+        if file_shift(base) is not None or bs["hidden"] != args.hidden or not bs["height_m"] < args.height:
+            raise ParameterError(f"caps: --shift-from {args.shift_from}: needs unshifted behaviours of "
+                                 f"{args.hidden} hidden neurons made for a lower height than {args.height:g} m")
+        settings.update(shift_from=Path(args.shift_from).name, shift_from_m=float(bs["height_m"]))
+    shift = file_shift({"settings": settings})
     out = Path(args.out)
     done, d = [], {}
     if args.more and not out.exists():
@@ -101,13 +114,13 @@ def build(args) -> None:
                 cands = [with_genome(t, np.array(done[j]["genome"], dtype=float)) for j in [k, *others]]
                 i, started = 0, {}
                 if len(cands) > 1:
-                    scores, lands = run_population(sim, cands, train)
+                    scores, lands = run_population(sim, cands, train, shift=shift)
                     i = int(np.argmax(scores.mean(axis=1)))
                     started = {"start": "own" if i == 0 else f"centre {int(others[i - 1]) + 1}",
                                "start_lands_train": int(lands[i].sum())}
                 best, f, rollouts, history = evolve(sim, cands[i], train, args.more, args.popsize, args.sigma,
-                                                    args.seed + 1 + len(cap.get("more", [])))
-                evolved = run_population(sim, [best], train)[1][0]
+                                                    args.seed + 1 + len(cap.get("more", [])), shift)
+                evolved = run_population(sim, [best], train, shift=shift)[1][0]
                 cap.setdefault("more", []).append({"generations": args.more, "score_before": cap["score"],
                                                    "lands_train_before": cap["evolved_lands_train"], **started,
                                                    "score": round(f, 4),
@@ -127,32 +140,43 @@ def build(args) -> None:
         for k in range(len(done), len(centres)):
             tk = time.perf_counter()
             c = centres[k]
-            start = up_drop(c, args.height)
-            it, v, landed = record(sim, start, lib.choose(c, args.height))
-            b = fit(it, v, args.hidden, args.steps, args.seed)[2]
             train = training(k)
-            # the evolution starts from the fit or, with --neighbours N, from the best on these starts of it and the
-            # N nearest centres' evolved behaviours (a continuation over the sphere: the grid runs from upright down)
             near = np.argsort(-(np.array([x["centre"] for x in done]).reshape(-1, 3) @ c))[:args.neighbours]
-            cands = [b] + [with_genome(template(args.hidden), np.array(done[j]["genome"], dtype=float)) for j in near]
-            scores, lands = run_population(sim, cands, train)
+            cands = [with_genome(template(args.hidden), np.array(done[j]["genome"], dtype=float)) for j in near]
+            names = [f"centre {int(j) + 1}" for j in near]
+            fitted = {}
+            if base is None:  # the fit to the library's motion for the centre, then the N nearest built centres'
+                start = up_drop(c, args.height)
+                it, v, landed = record(sim, start, lib.choose(c, args.height))
+                cands.insert(0, fit(it, v, args.hidden, args.steps, args.seed)[2])
+                names.insert(0, "fit")
+            else:  # --shift-from: the N nearest of its behaviours (at least one), then the N nearest built centres'
+                own = np.argsort(-(base_centres @ c))[:max(1, args.neighbours)]
+                cands[:0] = [base_behaviours[j] for j in own]
+                names[:0] = [f"{settings['shift_from']} centre {int(j) + 1}" for j in own]
+            # the evolution starts from the best of them on these starts (a continuation over the sphere: the grid
+            # runs from upright down)
+            scores, lands = run_population(sim, cands, train, shift=shift)
+            if base is None:
+                fitted = {"motion_lands_centre": landed, "fitted_lands_train": int(lands[0].sum())}
             i = int(np.argmax(scores.mean(axis=1)))
             best, f, rollouts, history = evolve(sim, cands[i], train, args.generations, args.popsize, args.sigma,
-                                                args.seed)
-            evolved = run_population(sim, [best], train)[1][0]
-            started = {"start": "fit" if i == 0 else f"centre {int(near[i - 1]) + 1}",
-                       "start_lands_train": int(lands[i].sum())} if len(cands) > 1 else {}
+                                                args.seed, shift)
+            evolved = run_population(sim, [best], train, shift=shift)[1][0]
+            started = ({"start": names[i], "start_lands_train": int(lands[i].sum())}
+                       if len(cands) > 1 or base is not None else {})
             done.append({"centre": [round(float(x), 9) for x in c], "tilt_deg": round(float(tilts_deg(c)), 1),
-                         "motion_lands_centre": landed, "fitted_lands_train": int(lands[0].sum()), **started,
+                         **fitted, **started,
                          "evolved_lands_train": int(evolved.sum()), "score": round(f, 4),
                          "rollouts": rollouts + len(train) * (len(cands) - 1),
                          "best_after_generation": history, "seconds": round(time.perf_counter() - tk),
                          "genome": [float(x) for x in genome(best)]})
             save()
             frm = f" (from {started['start']}, which lands {started['start_lands_train']})" if started else ""
+            fit_says = f"the fitted behaviour lands {fitted['fitted_lands_train']}, " if fitted else ""
             print(f"centre {k + 1}/{len(centres)} tilted {done[-1]['tilt_deg']:.0f}°: of its {args.train} training "
-                  f"starts the fitted behaviour lands {done[-1]['fitted_lands_train']}, evolved{frm} "
-                  f"{done[-1]['evolved_lands_train']} ({done[-1]['seconds']} s)", flush=True)
+                  f"starts {fit_says}evolved{frm} {done[-1]['evolved_lands_train']} ({done[-1]['seconds']} s)",
+                  flush=True)
     finally:
         sim.close()
     print(f"{out}: {len(done)} behaviours ({time.perf_counter() - t0:.0f} s this run)")
@@ -176,7 +200,7 @@ def evaluate_caps(args) -> dict:
             n_ticks = max(int(round((x.fall_time + MARGIN_S) * RATE_HZ)) for x in drops)
             row = {}
             heights = [x.height_m for x in drops]
-            for name, make in (("caps", lambda: CapPolicy(centres, behaviours)),
+            for name, make in (("caps", lambda: CapPolicy(centres, behaviours, file_shift(d))),
                                ("library", lambda hs=heights, n=n_ticks: LibraryBatch(lib, hs, n,
                                                                                       joint_speeds(sim.spec)))):
                 landed = []
@@ -222,6 +246,10 @@ def main() -> None:
     ap.add_argument("--neighbours", type=int, default=0, metavar="N",
                     help="start each centre's evolution from the best of its fit and the N nearest built centres' "
                     "behaviours on its training starts (default 0: from the fit)")
+    ap.add_argument("--shift-from", metavar="FILE",
+                    help="build: start each centre's evolution from the best of FILE's N nearest behaviours (made for "
+                    "a lower height, at least one) and the N nearest built centres', every behaviour run shifted as "
+                    "if released from FILE's height (felis.learning.landing.cap_policy, \"Shifted\"); no fit")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--more", type=int, default=0, metavar="G",
                     help="with --out FILE (built): evolve G more generations for each centre below --below")

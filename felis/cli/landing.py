@@ -150,10 +150,12 @@ def register_eval(eval_sub) -> None:
     e.add_argument("--drops", required=True, metavar="FILE|random:N|euler:N",
                    help="a JSON list of drops {roll_deg, pitch_deg, yaw_deg, height_m}, random:N (orientations "
                    "uniform over all rotations) or euler:N (roll, pitch and yaw each uniform over the circle)")
-    e.add_argument("--policy", metavar="library|shipped|caps|passive|stand|rules|optimum|FILE",
-                   help="what the cat does while it falls and lands: library (the shipped motion library: the "
-                   "motion that lands most often near the attitude the IMU gives at release; the default; on a "
-                   "--design with its own vote, that one: 4ms-paw's and the study's, taken on the 4 ms-paw cat), "
+    e.add_argument("--policy", metavar="caps+library|library|shipped|caps|passive|stand|rules|optimum|FILE",
+                   help="what the cat does while it falls and lands: caps+library (the default: the cap policy from "
+                   "the height it was built for, 1 m, the motion library from its other, 3 m; on another --design, "
+                   "library), library (the shipped motion library: the "
+                   "motion that lands most often near the attitude the IMU gives at release; "
+                   "on a --design with its own vote, that one: 4ms-paw's and the study's, taken on the 4 ms-paw cat), "
                    "shipped "
                    "(the evolved nets), caps (the shipped cap policy: closed-loop nets of the paper's size imitated "
                    "from the library's motions, then evolved; built for 1 m), passive (hold the pose at release), "
@@ -492,7 +494,8 @@ def cmd_eval_landing(args) -> int:
     from felis.scenarios.drop import drops_from
 
     drops = drops_from(args.drops, args.seed, args.height)
-    args.policy = args.policy or default_policy()
+    if args.policy is None:  # another design: the library (with that cat's own vote, if any); caps are the cat's
+        args.policy = default_policy() if args.design == "cat" else "library"
     if args.policy == "library" and design_library(args.design) is not None:
         args.policy = str(design_library(args.design))  # that cat's own vote of the library's motions
     if args.design != "cat" and args.live is not None:

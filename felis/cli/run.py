@@ -27,8 +27,10 @@ def register(sub) -> None:
     run.add_argument("--roll", type=finite, default=0.0, help="with --height: initial roll (deg, default 0)")
     run.add_argument("--pitch", type=finite, default=0.0, help="with --height: initial pitch (deg, default 0)")
     run.add_argument("--yaw", type=finite, default=0.0, help="with --height: initial yaw (deg, default 0)")
-    run.add_argument("--policy", type=Path, metavar="library|shipped|caps|FILE",
-                     help="landing: library (the shipped motion library, the default), shipped (the evolved nets), "
+    run.add_argument("--policy", type=Path, metavar="caps+library|library|shipped|caps|FILE",
+                     help="landing: caps+library (the default: the cap policy from the height it was built for, 1 m, "
+                     "the motion library from its other, 3 m), library (the shipped motion library), shipped (the "
+                     "evolved nets), "
                      "caps (the shipped cap policy: closed-loop nets imitated from the library, then evolved; or "
                      "a file from bench/landing_caps.py), "
                      "a policy file from `felis train landing` (.npz), a motion library from `felis train "

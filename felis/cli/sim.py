@@ -10,7 +10,7 @@ from felis.cli.args import finite, group, json_option, live_option, size
 from felis.cli.doctor import has_display
 from felis.cli.results import episode, report
 from felis.cli.run import drop_args
-from felis.errors import FelisError
+from felis.errors import FelisError, ParameterError
 
 
 def register(sub) -> None:
@@ -26,6 +26,9 @@ def register(sub) -> None:
         sp.add_argument("--controller", default=None,
                         help="controller during the run (default: landing for a dropped cat, else stand)")
         sp.add_argument("--duration", type=finite, default=2.0, help="simulated seconds (default 2)")
+        sp.add_argument("--policy", metavar="caps+library|library|shipped|caps|FILE",
+                        help="the landing controller's policy, as `felis run landing --policy` (default caps+library: "
+                        "the cap policy from 1 m, the motion library from 3 m)")
 
     drop = simsub.add_parser("drop", help="drop the robot and report how it lands")
     scenario_args(drop, need_height=True)
@@ -61,16 +64,29 @@ def default_controller(args) -> str:
     return "landing" if dropped and tuple(load_spec(args.robot).names) == JOINTS else "stand"
 
 
+def controller_options(args, controller: str) -> dict:
+    """``--policy`` for the landing controller (which loads it: a bad one is one line, before anything runs), else
+    {}."""
+    if args.policy is None:
+        return {}
+    if controller != "landing":
+        raise ParameterError(f"--policy belongs to the landing controller, not {controller}")
+    return {"policy": Path(args.policy)}
+
+
 def cmd_sim_drop(args) -> int:
-    res = episode(args, robot=args.robot, controller=default_controller(args), duration=args.duration,
+    controller = default_controller(args)
+    res = episode(args, robot=args.robot, controller=controller, duration=args.duration,
                   drop=(args.height, args.roll, args.pitch, args.yaw), log=args.log, video=args.video,
-                  servo_params=args.servo_params)
+                  servo_params=args.servo_params, controller_options=controller_options(args, controller))
     return report(args, res)
 
 
 def cmd_sim_render(args) -> int:
-    res = episode(args, robot=args.robot, controller=default_controller(args), duration=args.duration,
-                  drop=drop_args(args), video=args.out, fps=args.fps, size=args.size)
+    controller = default_controller(args)
+    res = episode(args, robot=args.robot, controller=controller, duration=args.duration,
+                  drop=drop_args(args), video=args.out, fps=args.fps, size=args.size,
+                  controller_options=controller_options(args, controller))
     return report(args, res)
 
 
@@ -87,8 +103,12 @@ def cmd_sim_view(args) -> int:
     from felis.sim.scenarios import drop
 
     spec = load_spec(args.robot)
-    controller = make_controller(default_controller(args))
+    name = default_controller(args)
     dropped = drop_args(args)
+    options = controller_options(args, name)
+    if name == "landing" and dropped is not None:
+        options["drop_height"] = float(dropped[0])
+    controller = make_controller(name, **options)
     with MujocoRobot(spec) as robot:
         if dropped is not None:
             drop(robot, *dropped)

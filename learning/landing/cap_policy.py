@@ -7,6 +7,15 @@ with u_y ≥ 0) is nearest the up axis u its IMU reports (roll r, pitch p: u = (
 `felis.learning.landing.library.up_axis`) and keeps it; for u_y < 0 it runs the behaviour on its mirror image
 (`mirror_inputs`, `mirror_velocities`), as the library's shelves are mirrored.
 
+**Shifted** (a file whose ``settings`` name ``shift_from_m`` h₁ beside its ``height_m`` H): behaviours made for
+drops from h₁, run from H as if released from h₁ later. Each cat holds its joints for s = √(2H/g) − √(2h₁/g),
+rounded to whole ticks, then runs its behaviour with the time since release less s and its height input lowered by
+(H − h₁) − ½g(t² − (t − s)²), the difference of the two free falls, until that reaches 0 at the touchdown. Without
+angular momentum a falling cat's attitude does not depend on its speed, so it turns as it would from h₁; only the
+impact is harder. The shift is the file's, for drops from H (a policy by height, `felis.learning.landing.by_height`,
+gives it the drops nearest H). The 1 m behaviours run so land 47 and 37 of `random:100` from 3 m, where run as they
+are they land 1 and 1 (`bench/landing_caps_height.py`).
+
 **Files** (``bench/landing_caps.py --out`` writes them; `load_caps` reads them): JSON with ``"format":
 "felis-landing-caps"``, the build's ``settings`` (``hidden``: the behaviours' hidden neurons per unit, ``height_m``:
 the drop height they were evolved for) and ``caps``, one per centre: its ``centre`` and ``genome`` (`genome`'s
@@ -18,6 +27,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +35,8 @@ import numpy as np
 from felis.errors import ParameterError
 from felis.learning.landing.library import up_axis
 from felis.learning.landing.motion import DT  # the control tick (s)
-from felis.learning.landing.policy import KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
+from felis.learning.landing.policy import DROP_HEIGHT_M, KINDS, MAX_SPEED, PARTS, GeneUnit, SimpleBehaviour
+from felis.rotations import G
 
 FORMAT = "felis-landing-caps"
 SHIPPED_CAPS = Path(__file__).parents[1] / "weights" / "landing_caps48-1m.json"  # ``--policy caps``
@@ -76,18 +87,29 @@ def with_genome(b: SimpleBehaviour, g: np.ndarray) -> SimpleBehaviour:
     return SimpleBehaviour(*units).check()
 
 
+def shift_s(height_m: float, built_m: float) -> float:
+    """s = √(2H/g) − √(2h₁/g) in whole control ticks, 0 where H ≤ h₁ (module doc, "Shifted")."""
+    return round(max(0.0, math.sqrt(2 * max(height_m, 0.0) / G) - math.sqrt(2 * built_m / G)) / DT) * DT
+
+
 class CapPolicy:
     """Behaviours over caps (module doc): cat b takes, at its first tick, ``behaviours[k]`` with ``centres[k]``
     (up axes with u_y ≥ 0) the nearest its up axis, mirrored when u_y < 0, and keeps it. A `LandingBatch` policy
-    (``(IT, t, rows) -> velocities``); one instance per batch run."""
+    (``(IT, t, rows) -> velocities``); one instance per batch run. ``shift`` (H, h₁): behaviours made for drops
+    from h₁, run shifted from H (module doc); the choice is then made when a cat starts, s after its release."""
 
-    def __init__(self, centres: np.ndarray, behaviours):
+    def __init__(self, centres: np.ndarray, behaviours, shift: tuple[float, float] | None = None):
         self.centres = np.asarray(centres, dtype=float).reshape(-1, 3)
         self.behaviours = list(behaviours)
         if len(self.centres) != len(self.behaviours) or not self.behaviours:
             raise ParameterError(f"caps: {len(self.centres)} centres for {len(self.behaviours)} behaviours")
         if np.any(self.centres[:, 1] < -1e-9):
             raise ParameterError("caps: the centres lie in the half u_y ≥ 0 (the other half runs mirrored)")
+        if shift is not None and not (len(shift) == 2 and all(isinstance(x, int | float) and math.isfinite(x)
+                                                              and x > 0 for x in shift) and shift[0] >= shift[1]):
+            raise ParameterError(f"caps: a shift is from a drop height to a lower one, both positive metres; got "
+                                 f"{shift!r}")
+        self.shift = None if shift is None else (float(shift[0]), float(shift[1]))
         self.choice: dict[int, tuple[int, bool]] = {}
 
     def choose(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,6 +117,19 @@ class CapPolicy:
         return nearest_centre(self.centres, u), u[:, 1] < 0
 
     def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        if self.shift is None:
+            return self._run(it, t, rows)
+        h, h1 = self.shift
+        s = shift_s(h, h1)
+        v = np.zeros((len(it), 12))
+        on = t >= s - 1e-9
+        if on.any():
+            x, tt = it[on].copy(), t[on]
+            x[:, 6] += np.minimum(0.0, 0.5 * G * (tt ** 2 - (tt - s) ** 2) - (h - h1)) / DROP_HEIGHT_M
+            v[on] = self._run(x, tt - s, rows[on])
+        return v
+
+    def _run(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
         new = [i for i, r in enumerate(rows) if t[i] < DT / 2 or int(r) not in self.choice]
         if new:
             k, flip = self.choose(up_axis(it[new, 4] * np.pi, it[new, 5] * (np.pi / 2)))
@@ -119,8 +154,8 @@ class CapRule:
 
     kind = "caps"
 
-    def __init__(self, centres: np.ndarray, behaviours):
-        self.batch = CapPolicy(centres, behaviours)
+    def __init__(self, centres: np.ndarray, behaviours, shift: tuple[float, float] | None = None):
+        self.batch = CapPolicy(centres, behaviours, shift)
 
     def __call__(self, it: np.ndarray, t: float) -> np.ndarray:
         return self.batch(np.asarray(it, dtype=float).reshape(1, -1), np.array([float(t)]), np.zeros(1, int))[0]
@@ -155,6 +190,12 @@ def _says_caps(path: str, size: int, mtime_ns: int) -> bool:
     return isinstance(doc, dict) and doc.get("format") == FORMAT
 
 
+def file_shift(d: dict) -> tuple[float, float] | None:
+    """(H, h₁) of a caps file's dict whose behaviours run shifted (``settings.shift_from_m``), else None."""
+    h1 = d["settings"].get("shift_from_m")
+    return None if h1 is None else (d["settings"]["height_m"], h1)
+
+
 def load_caps(path: str | Path) -> tuple[dict, np.ndarray, list[SimpleBehaviour]]:
     """(the file's dict, centres (K, 3), behaviours) of a caps file (module doc); `ParameterError`, one line naming
     the file, for anything else: not JSON, another format, a genome of the wrong size, a centre off the sphere or in
@@ -175,7 +216,7 @@ def load_caps(path: str | Path) -> tuple[dict, np.ndarray, list[SimpleBehaviour]
         if not all(np.all(np.isfinite(g)) for g in genomes):
             raise ValueError("a genome holds a weight that is not a finite number")
         behaviours = [with_genome(t, g) for g in genomes]
-        CapPolicy(centres, behaviours)
+        CapPolicy(centres, behaviours, file_shift(d))
     except (OSError, ValueError, KeyError, TypeError, ParameterError) as e:
         raise ParameterError(f"caps: {p}: {str(e).removeprefix('caps: ')}") from None
     return d, centres, behaviours
@@ -183,5 +224,11 @@ def load_caps(path: str | Path) -> tuple[dict, np.ndarray, list[SimpleBehaviour]
 
 def load_cap_rule(path: str | Path) -> CapRule:
     """`CapRule` of a caps file (`load_caps`'s errors)."""
-    _, centres, behaviours = load_caps(path)
-    return CapRule(centres, behaviours)
+    d, centres, behaviours = load_caps(path)
+    return CapRule(centres, behaviours, file_shift(d))
+
+
+def load_cap_policy(path: str | Path) -> CapPolicy:
+    """`CapPolicy` (a batch's) of a caps file (`load_caps`'s errors)."""
+    d, centres, behaviours = load_caps(path)
+    return CapPolicy(centres, behaviours, file_shift(d))

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.learning.landing.cap_policy import genome, nearest_centre, with_genome
+from felis.learning.landing.cap_policy import CapPolicy, genome, nearest_centre, with_genome
 from felis.learning.landing.library_build import up_drop
 from felis.learning.landing.motion import DT  # the control tick (s): a motion's table has one row a tick
 from felis.learning.landing.optimum import evaluate
@@ -147,16 +147,23 @@ class Late:
         return v
 
 
-def run_population(sim, behaviours, drops, late_ticks: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def run_population(sim, behaviours, drops, late_ticks: int = 0,
+                   shift: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(scores, landed), each (len(behaviours), len(drops)): every behaviour closed loop on every drop, one batch
-    (each started ``late_ticks`` late, `Late`); the score is the per-drop optimum's
-    (`felis.learning.landing.optimum.score`: training's landing fitness, 3 more for a landing)."""
+    (each started ``late_ticks`` late, `Late`; with ``shift`` (H, h₁), run shifted as a cap policy's behaviours made
+    for h₁ run from H, `felis.learning.landing.cap_policy`); the score is the per-drop optimum's
+    (`felis.learning.landing.optimum.score`: training's landing fitness, 3 more for a landing). The drops' up axes
+    must have u_y ≥ 0 under ``shift`` (each behaviour runs as a one-centre cap policy, which mirrors the others)."""
     from felis.controllers.landing import LandingBatch
     from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ
     from felis.learning.landing.optimum import score
 
     P, D = len(behaviours), len(drops)
-    policies = [Late(b, late_ticks) for b in behaviours] if late_ticks else list(behaviours)
+    policies = list(behaviours)
+    if shift is not None:
+        policies = [CapPolicy(np.array([[0.0, 1.0, 0.0]]), [b], shift) for b in policies]
+    if late_ticks:
+        policies = [Late(b, late_ticks) for b in policies]
     ctl = LandingBatch(sim.spec, policies, np.repeat(np.arange(P), D))
     batch = sim.batch.run(list(drops) * P, ctl, sim.standing_waist_m, rate_hz=RATE_HZ, margin_s=MARGIN_S)
     scored = [score(r, sim.standing_waist_m) for r in batch]
@@ -164,23 +171,24 @@ def run_population(sim, behaviours, drops, late_ticks: int = 0) -> tuple[np.ndar
             np.array([bool(v.landed) for _, v in scored]).reshape(P, D))
 
 
-def evolve(sim, start: SimpleBehaviour, drops, generations: int, popsize: int, sigma: float, seed: int = 0):
-    """CMA-ES (`cma`) over ``start``'s weights, from them, maximising the mean score over ``drops``; the fitted
-    start is scored too and kept if nothing beats it. Returns (best behaviour, its mean score, rollouts, the best
-    mean score after each generation)."""
+def evolve(sim, start: SimpleBehaviour, drops, generations: int, popsize: int, sigma: float, seed: int = 0,
+           shift: tuple[float, float] | None = None):
+    """CMA-ES (`cma`) over ``start``'s weights, from them, maximising the mean score over ``drops`` (run shifted with
+    ``shift``, `run_population`); the fitted start is scored too and kept if nothing beats it. Returns (best
+    behaviour, its mean score, rollouts, the best mean score after each generation)."""
     import cma
 
     if generations < 1 or popsize < 2 or not sigma > 0:
         raise ParameterError(f"caps: evolution needs generations ≥ 1, popsize ≥ 2, sigma > 0; got {generations}, "
                              f"{popsize}, {sigma}")
     g0 = genome(start)
-    best, best_f = start, float(run_population(sim, [start], drops)[0].mean())
+    best, best_f = start, float(run_population(sim, [start], drops, shift=shift)[0].mean())
     rollouts, history = len(drops), []
     es = cma.CMAEvolutionStrategy(g0, sigma, {"popsize": popsize, "seed": seed + 1, "verbose": -9})
     for _ in range(generations):
         gs = es.ask()
         pop = [with_genome(start, np.asarray(g)) for g in gs]
-        f = run_population(sim, pop, drops)[0].mean(axis=1)
+        f = run_population(sim, pop, drops, shift=shift)[0].mean(axis=1)
         rollouts += f.size * len(drops)
         es.tell(gs, (-f).tolist())
         i = int(np.argmax(f))

@@ -50,7 +50,7 @@ RATE_HZ = 100.0
 MARGIN_S = 1.0  # after the fall: the 0.5 s window and 0.5 s more
 
 POLICIES = {"passive": "hold", "stand": "stand"}  # baseline name → controller name
-NAMED = (*POLICIES, "rules", "shipped", "library", "caps")
+NAMED = (*POLICIES, "rules", "shipped", "library", "caps", "caps+library")
 
 
 def check_timestep_ms(ms: float) -> float:
@@ -70,11 +70,15 @@ def shipped_policy() -> Path:
 
 
 def default_policy() -> str:
-    """The shipped motion library when there is one, else the shipped trained nets, else ``passive``."""
+    """``caps+library`` (the shipped cap policy at its height, the shipped motion library at the others:
+    `felis.learning.landing.by_height`) when both are shipped, else the motion library when it is, else the shipped
+    trained nets, else ``passive``."""
+    from felis.learning.landing.by_height import NAME
+    from felis.learning.landing.cap_policy import SHIPPED_CAPS
     from felis.learning.landing.library import DEFAULT_LIBRARY
 
     if DEFAULT_LIBRARY.is_file():
-        return "library"
+        return NAME if SHIPPED_CAPS.is_file() else "library"
     return "shipped" if shipped_policy().is_file() else "passive"
 
 
@@ -98,9 +102,17 @@ def library_path(policy: str) -> Path | None:
 
 def check_policy(policy: str) -> str:
     """``policy`` if it can be run: a baseline (passive, stand), ``rules`` (the hand-written spine rule of
-    the nearest training orientation), ``shipped``, ``library``, ``caps`` or a policy file; else a one-line
-    ParameterError."""
+    the nearest training orientation), ``shipped``, ``library``, ``caps``, ``caps+library`` or a policy file; else a
+    one-line ParameterError."""
     if policy in POLICIES or policy == "rules":
+        return policy
+    if policy == "caps+library":
+        from felis.learning.landing.by_height import caps_library_heights
+        from felis.learning.landing.library import load_library
+
+        check_policy("caps")
+        check_policy("library")
+        caps_library_heights(caps_path("caps"), load_library())
         return policy
     caps = caps_path(policy)
     if caps is not None:
@@ -145,6 +157,12 @@ def make_policy(policy: str, drop: Drop | None = None) -> Controller:
 
         rule = nearest_rule((drop.roll_deg, drop.pitch_deg, drop.yaw_deg) if drop else (180.0, 0.0, 0.0))
         return LandingController(rule, drop_height=drop.height_m if drop else None)
+    if policy == "caps+library":
+        from felis.learning.landing.by_height import caps_library_rule
+        from felis.learning.landing.library import load_library
+
+        h = drop.height_m if drop else None
+        return LandingController(caps_library_rule(caps_path("caps"), load_library(), h), drop_height=h)
     caps = caps_path(policy)
     if caps is not None:
         from felis.learning.landing.cap_policy import load_cap_rule
@@ -337,17 +355,24 @@ def batch_controller(spec, policy: str, drops: Sequence[Drop]):
 
     if policy in POLICIES or policy == "rules":
         return PerCat(spec, lambda b: make_policy(policy, drops[b]))
+    n_ticks = max(int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops)
+    if policy == "caps+library":
+        from felis.learning.landing.by_height import caps_library_batch
+        from felis.learning.landing.designs import joint_speeds
+        from felis.learning.landing.library import load_library
+
+        return LandingBatch(spec, [caps_library_batch(caps_path("caps"), load_library(), [d.height_m for d in drops],
+                                                      n_ticks, joint_speeds(spec))])
     caps = caps_path(policy)
     if caps is not None:
-        from felis.learning.landing.cap_policy import CapPolicy, load_caps
+        from felis.learning.landing.cap_policy import load_cap_policy
 
-        return LandingBatch(spec, [CapPolicy(*load_caps(caps)[1:])])
+        return LandingBatch(spec, [load_cap_policy(caps)])
     lib = library_path(policy)
     if lib is not None:
         from felis.learning.landing.designs import joint_speeds
         from felis.learning.landing.library import LibraryBatch, load_library
 
-        n_ticks = max(int(round((d.fall_time + MARGIN_S) * RATE_HZ)) for d in drops)
         return LandingBatch(spec, [LibraryBatch(load_library(lib), [d.height_m for d in drops], n_ticks,
                                                 joint_speeds(spec))])
     from felis.learning.landing.policy import load_policy

@@ -67,7 +67,7 @@ def words(text: str) -> str:
     ((), ["--debug", "--version", "doctor", "demo", "run", "sim", "log"]),
     (("sim",), ["drop", "render", "view"]),
     (("sim", "drop"), ["--robot", "--height", "--roll", "--pitch", "--yaw", "--controller", "--duration",
-                       "--log", "--video", "--json"]),
+                       "--policy", "--log", "--video", "--json"]),
     (("sim", "render"), ["--out", "--fps", "--size", "--height", "--duration"]),
     (("log", "plot"), ["file", "--out"]),
     (("log", "info"), ["file", "--json"]),
@@ -218,6 +218,18 @@ def test_drop_upside_down_lands_on_its_back(tmp_path, controller, rel_tol):
     assert landing["first_contact_s"] == pytest.approx(fall, rel=rel_tol)
     # impact speed of a free fall from 1 m: √(2gh) ≈ 4.43 m/s
     assert landing["impact_speed_ms"] == pytest.approx(math.sqrt(2 * G * 1.0), rel=0.05)
+
+
+def test_drop_runs_the_landing_policy_it_names(tmp_path):
+    """``felis sim drop`` drops the cat under the landing controller's default policy (``caps+library``), and
+    ``--policy`` picks another, as `felis run landing --policy` does: upside down from 1 m (the README's drop) the
+    default and the cap policy land on their feet, the motion library alone (open loop) lands on its back."""
+    default = _drop(tmp_path, "--height", "1", "--roll", "180")
+    caps = _drop(tmp_path, "--height", "1", "--roll", "180", "--policy", "caps")
+    library = _drop(tmp_path, "--height", "1", "--roll", "180", "--policy", "library")
+    assert default["run"]["controller"] == caps["run"]["controller"] == library["run"]["controller"] == "landing"
+    assert default["landing"]["on_feet"] is True and caps["landing"]["on_feet"] is True
+    assert library["landing"]["on_feet"] is False and library["landing"]["torso_contact"] is True
 
 
 def test_drop_upright_lands_on_its_feet(tmp_path):
@@ -430,6 +442,12 @@ BAD_INPUT = [
      1, ["notalog.mcap"]),
     ("run-log-suffix", {}, ["run", "stand", "--robot", "cat", "--log", "out.txt"], 1, ["out.txt", ".mcap"]),
     ("drop-log-suffix", {}, ["sim", "drop", "--height", "1", "--log", "out.txt"], 1, ["out.txt", ".mcap"]),
+    ("drop-policy-missing", {}, ["sim", "drop", "--height", "1", "--policy", "nope.npz", "--log", "d.mcap"],
+     1, ["nope.npz", "no such landing policy file"]),
+    ("drop-policy-not-landing", {}, ["sim", "drop", "--height", "1", "--controller", "stand", "--policy", "caps",
+                                     "--log", "d.mcap"], 1, ["--policy", "landing", "stand"]),
+    ("render-policy-bad-caps", {"c.json": '{"format": "felis-landing-caps"}'},
+     ["sim", "render", "--height", "1", "--policy", "c.json", "--out", "v.mp4"], 1, ["caps: c.json"]),
     ("render-suffix", {}, ["sim", "render", "--height", "0.3", "--duration", "0.5", "--out", "v.txt"],
      1, ["v.txt", ".mp4"]),
     ("render-size", {}, ["sim", "render", "--out", "v.mp4", "--size", "10x10"], 2, ["--size", "10x10"]),

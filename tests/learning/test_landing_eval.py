@@ -235,23 +235,25 @@ def test_summarise_and_run_drops_in_order():
 
 
 def test_shipped_policies_right_the_demo_drop_that_passive_does_not():
-    """The shipped motion library (the default) and the shipped nets (learning/weights/landing.npz) against holding
-    still, on the demo's drop (1 m, tilted 56°) and on a drop none can right (upside down): what the policies add,
-    and where they stop."""
+    """The default (``caps+library``: the cap policy at 1 m, the motion library at 3 m), the library and the shipped
+    nets (learning/weights/landing.npz) against holding still, on the demo's drop (1 m, tilted 56°) and upside down:
+    from 1 m only the closed loop of the default lands that, from 3 m nothing does."""
     from felis.cli.demo import DEMO_DROP
     from felis.learning.landing.evaluate import default_policy, shipped_policy
     from felis.learning.landing.library import DEFAULT_LIBRARY, load_library
     from felis.learning.landing.policy import load_policy
 
-    assert default_policy() == "library" and check_policy("library") == "library"
-    assert check_policy("shipped") == "shipped"
+    assert default_policy() == "caps+library" and check_policy("caps+library") == "caps+library"
+    assert check_policy("library") == "library" and check_policy("shipped") == "shipped"
     load_policy(shipped_policy())  # a valid policy file
     assert [s.height_m for s in load_library(DEFAULT_LIBRARY).shelves] == [1.0, 3.0]
     h, r, p, y = DEMO_DROP
-    drops = [Drop(r, p, y, h), Drop(180.0, 0.0, 0.0, 1.0)]
-    library, shipped, passive = (run_drops(drops, pol, workers=1) for pol in ("library", "shipped", "passive"))
-    assert library[0].landed and shipped[0].landed and not passive[0].landed, (library[0].why, passive[0].why)
-    assert not any(o[1].landed for o in (library, shipped, passive))  # upside down from 1 m: no XL330 cat turns 150°
+    drops = [Drop(r, p, y, h), Drop(180.0, 0.0, 0.0, 1.0), Drop(180.0, 0.0, 0.0, 3.0)]
+    default, library, shipped, passive = (run_drops(drops, pol, workers=1)
+                                          for pol in ("caps+library", "library", "shipped", "passive"))
+    assert default[0].landed and library[0].landed and shipped[0].landed and not passive[0].landed
+    assert default[1].landed and not any(o[1].landed for o in (library, shipped, passive)), default[1].why
+    assert not any(o[2].landed for o in (default, library, shipped, passive))
 
 
 # ----------------------------------------------------------------------------------- the CLI

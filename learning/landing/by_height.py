@@ -1,0 +1,122 @@
+"""Landing policies by drop height (issue 21): at release each cat takes the policy made for the height nearest the
+height it senses then, and keeps it. What the default landing policy, ``caps+library``, is: the cap policy
+(`felis.learning.landing.cap_policy`) at the height its behaviours were evolved for (1 m), the motion library's
+shelves (`felis.learning.landing.library`) at its other heights (3 m). Numpy only: an inference module.
+
+**Which height.** The height h a cat senses at release is its nets' height input (IT[6]·3 m,
+`felis.learning.landing.policy.normalise_inputs`): measured in simulation, the operator's drop height on hardware
+(`felis.controllers.landing.LandingController`'s free-fall prediction). Of the parts' heights h_k it takes
+argmin_k |ln(h_k / h)|, the nearest by the ratio (fall times scale with √h), as the library picks its shelf. Between
+1 m and 3 m the boundary is √3 ≈ 1.73 m.
+
+**Why these two.** Measured on `random:100` (docs/landing.md, "The default"): from 1 m the cap policy lands 90 and 83
+of seeds 0 and 1 (85.7 on average on seeds 2–7) where the library lands 89 and 75 (70.2); from 3 m the library lands
+92 and 81 (85.2) where behaviours evolved for 3 m from the 1 m ones run shifted
+(`learning/weights/landing_caps48-3m.json`) land 69 and 73 (71.8).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from felis.errors import ParameterError
+from felis.learning.landing.motion import DT  # the control tick (s)
+from felis.learning.landing.policy import DROP_HEIGHT_M
+
+NAME = "caps+library"  # ``--policy caps+library``: the default where both parts are shipped
+
+
+def nearest_height(heights: Sequence[float], h) -> np.ndarray:
+    """Index of the height in ``heights`` nearest each sensed height ``h`` (B,) by the ratio, argmin |ln(h_k / h)|
+    (a height at or below 0 counts as 1 mm)."""
+    h = np.maximum(np.atleast_1d(np.asarray(h, dtype=float)), 1e-3)
+    return np.argmin(np.abs(np.log(np.asarray(heights, dtype=float)[None, :] / h[:, None])), axis=1)
+
+
+def _check(heights, parts) -> np.ndarray:
+    heights = np.asarray(heights, dtype=float).reshape(-1)
+    if len(heights) != len(parts) or not len(parts):
+        raise ParameterError(f"landing: {len(heights)} heights for {len(parts)} policies")
+    if not np.all(np.isfinite(heights) & (heights > 0)) or len(set(heights.tolist())) != len(heights):
+        raise ParameterError(f"landing: by-height policies need distinct positive heights, got {heights.tolist()}")
+    return heights
+
+
+class ByHeight:
+    """Batch policies by height (module doc): cat b takes, at its first tick, ``policies[k]`` with ``heights[k]`` the
+    nearest the height it senses, and keeps it. Each part is a `felis.controllers.landing.LandingBatch` policy (a
+    behaviour's ``velocities_many``, or ``(IT, t, rows)``) and sees the batch's rows; one instance per batch run."""
+
+    def __init__(self, heights: Sequence[float], policies: Sequence):
+        self.heights = _check(heights, policies)
+        self.policies = list(policies)
+        self.choice: dict[int, int] = {}  # row → part
+
+    def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        new = [i for i, r in enumerate(rows) if t[i] < DT / 2 or int(r) not in self.choice]
+        if new:
+            for i, k in zip(new, nearest_height(self.heights, it[new, 6] * DROP_HEIGHT_M), strict=True):
+                self.choice[int(rows[i])] = int(k)
+        pick = np.array([self.choice[int(r)] for r in rows], dtype=int)
+        v = np.zeros((len(it), 12))
+        for k in np.unique(pick):
+            g = np.flatnonzero(pick == k)
+            p = self.policies[k]
+            f = getattr(p, "velocities_many", None)
+            v[g] = f(it[g]) if callable(f) else p(it[g], t[g], rows[g])
+        return v
+
+
+class ByHeightRule:
+    """`ByHeight` for one cat, a `felis.controllers.landing.LandingController` policy ``(it (15,), t) -> (12,)``:
+    at its first call it takes the rule (``(it, t)`` callables) of the height nearest the one it senses and keeps
+    it."""
+
+    kind = "by-height"
+
+    def __init__(self, heights: Sequence[float], rules: Sequence):
+        self.heights = _check(heights, rules)
+        self.rules = list(rules)
+        self.part: int | None = None
+
+    def __call__(self, it: np.ndarray, t: float) -> np.ndarray:
+        it = np.asarray(it, dtype=float)
+        if self.part is None or float(t) < DT / 2:
+            self.part = int(nearest_height(self.heights, it[6] * DROP_HEIGHT_M)[0])
+        return self.rules[self.part](it, t)
+
+
+def caps_library_heights(caps: str | Path, library) -> tuple[float, list[float]]:
+    """(the cap policy's height, the library's other shelf heights) for ``caps+library`` from a caps file and a
+    `felis.learning.landing.library.MotionLibrary`; one line if the library has no other height."""
+    from felis.learning.landing.cap_policy import load_caps
+
+    h = float(load_caps(caps)[0]["settings"]["height_m"])
+    rest = [x for x in library.heights if x != h]
+    if not rest:
+        raise ParameterError(f"{NAME}: the library has no shelf at another height than the cap policy's {h:g} m")
+    return h, rest
+
+
+def caps_library_rule(caps: str | Path, library, drop_height: float | None = None) -> ByHeightRule:
+    """``caps+library`` for one cat: `felis.learning.landing.cap_policy.CapRule` at the caps file's height, the
+    library's `felis.learning.landing.library.LibraryRule` (timed for ``drop_height``) at each other shelf's."""
+    from felis.learning.landing.cap_policy import load_cap_rule
+    from felis.learning.landing.library import LibraryRule
+
+    h, rest = caps_library_heights(caps, library)
+    return ByHeightRule([h, *rest], [load_cap_rule(caps), *[LibraryRule(library, drop_height) for _ in rest]])
+
+
+def caps_library_batch(caps: str | Path, library, heights, n_ticks: int, speed) -> ByHeight:
+    """``caps+library`` for a batch whose drops are from ``heights`` (m, one per cat): `CapPolicy` at the caps file's
+    height, one `LibraryBatch` (``n_ticks``, joint ``speed``) at the library's other shelves' heights."""
+    from felis.learning.landing.cap_policy import load_cap_policy
+    from felis.learning.landing.library import LibraryBatch
+
+    h, rest = caps_library_heights(caps, library)
+    lib = LibraryBatch(library, heights, n_ticks, speed)
+    return ByHeight([h, *rest], [load_cap_policy(caps), *[lib] * len(rest)])
