@@ -106,13 +106,9 @@ def check_policy(policy: str) -> str:
     one-line ParameterError."""
     if policy in POLICIES or policy == "rules":
         return policy
-    if policy == "caps+library":
-        from felis.learning.landing.by_height import caps_library_heights
-        from felis.learning.landing.library import load_library
-
+    if policy == "caps+library":  # both parts (their heights are checked where the policy is made)
         check_policy("caps")
         check_policy("library")
-        caps_library_heights(caps_path("caps"), load_library())
         return policy
     caps = caps_path(policy)
     if caps is not None:
