@@ -104,15 +104,17 @@ def _balance(base: str = "stand", reaction: str = "none", body=None, selector=No
 
 
 def _landing(policy=None, drop_height: float | None = None) -> Controller:
-    """The falling cat's landing policy: ``caps+library`` (the shipped cap policy, `felis.learning.landing.cap_policy`,
-    at the height it was evolved for, the shipped motion library, `felis.learning.landing.library`, at the others:
-    `felis.learning.landing.by_height`) where both are shipped, else the library, else the shipped evolved nets
-    (seed 000), unless a policy is named: ``caps+library``, ``library``, ``shipped`` (the nets), ``caps`` (the cap
-    policy at every height), a caps ``.json`` file, a ``.npz`` file of
+    """The falling cat's landing policy: ``caps+library`` (at each height a vote by attitude between the shipped cap
+    policy made for it, `felis.learning.landing.cap_policy`, and the shipped motion library,
+    `felis.learning.landing.library`: `felis.learning.landing.by_height`, `felis.learning.landing.by_attitude`) where
+    both are shipped, else the library, else the shipped evolved nets (seed 000), unless a policy is named:
+    ``caps+library``, ``library``, ``shipped`` (the nets), ``caps`` (the cap policy at every height), a caps or a
+    vote ``.json`` file, a ``.npz`` file of
     nets, a ``.json`` motion library, or a ``.json`` open-loop whole-body motion searched for one drop
     (`felis.learning.landing.motion`), which must run from the height it was searched for. ``drop_height``
     (m): the drop's, which the library times its motion by and where the robot reports no height (hardware) the
     free-fall prediction starts from."""
+    from felis.learning.landing.by_attitude import is_vote_file, vote_rule
     from felis.learning.landing.by_height import NAME, caps_library_rule
     from felis.learning.landing.cap_policy import SHIPPED_CAPS, is_caps_file, load_cap_rule
     from felis.learning.landing.library import DEFAULT_LIBRARY, LibraryRule, is_library_file, load_library
@@ -122,6 +124,8 @@ def _landing(policy=None, drop_height: float | None = None) -> Controller:
     if policy is not None and str(policy) == NAME:
         return LandingController(caps_library_rule(SHIPPED_CAPS, load_library(DEFAULT_LIBRARY), drop_height),
                                  drop_height=drop_height)
+    if policy is not None and is_vote_file(policy):
+        return LandingController(vote_rule(policy, load_library(DEFAULT_LIBRARY), drop_height), drop_height=drop_height)
     if policy is not None and (str(policy) == "caps" or is_caps_file(policy)):
         return LandingController(load_cap_rule(SHIPPED_CAPS if str(policy) == "caps" else policy),
                                  drop_height=drop_height)

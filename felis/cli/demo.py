@@ -35,9 +35,10 @@ HARD_DROP = (3.0, 145.0, -12.0, 0.0)  # tilted 143°: the library's motion lands
 def cmd_demo(args) -> int:
     """Servo-in-the-loop: the cat stands up through the virtual Dynamixel bus backed by MuJoCo (the
     whole hardware code path: DynamixelRobot, SDK, pseudo-terminal, byte-level servos, physics);
-    then the cat dropped tilted from 1 m under the landing controller's default policy (seed 000, issue 21: from
-    1 m the shipped cap policy), in MuJoCo, with video; then a hard drop, tilted 143° from 3 m, under the same
-    controller (from 3 m the default runs the shipped motion library); then the arm tracking a figure eight with the
+    then the cat dropped tilted from 1 m under the landing controller's default policy (seed 000, issue 21: a vote
+    by attitude between the shipped cap policy and motion library, which takes the library for this start), in
+    MuJoCo, with video; then a hard drop, tilted 143° from 3 m, under the same controller (its 3 m vote takes the
+    library too); then the arm tracking a figure eight with the
     learned IK pipeline (seed 001), with video; then the standing cat pushed, with the balance monitor's margin and
     alarm plotted (seed 004)."""
     root = Path(args.out)
@@ -91,9 +92,10 @@ def _episodes(run_dir: Path, no_video: bool):
                       rate_hz=50.0, clock="wall", log=run_dir / "stand_dxl.mcap", plot=run_dir / "stand_dxl.png",
                       meta={"demo": True})),
         ("[bold]felis demo 2/5[/]: the cat dropped from 1 m tilted 56° (roll -50°, pitch -30°) under the "
-         "landing controller's default policy (seed 000; MuJoCo): from 1 m, the cap policy's closed-loop nets of "
-         "the paper's size, one per cell of start attitudes, imitated from the motion library and then evolved; at "
-         "release it reads its attitude from the IMU and takes the nets of its cell. Held still, it lands on its "
+         "landing controller's default policy (seed 000; MuJoCo): at release it reads its attitude from the IMU "
+         "and takes whichever of two policies landed more training drops started near it: the cap policy's "
+         "closed-loop nets of the paper's size (imitated from the motion library, then evolved) or the motion "
+         "library itself, which it takes for this start. Held still, it lands on its "
          "back from this drop; see docs/landing.md for where landing fails",
          # 2.5 s: the 0.45 s fall, the bounce, and the cat settled on four feet (the verdict: touchdown + 0.5 s)
          lambda: dict(robot="cat", controller="landing", duration=2.5,
@@ -101,8 +103,9 @@ def _episodes(run_dir: Path, no_video: bool):
                       log=run_dir / "drop.mcap", video=None if no_video else run_dir / "drop.mp4",
                       plot=run_dir / "drop.png", meta={"demo": True})),
         ("[bold]felis demo 3/5[/]: a hard drop: the cat released tilted 143° (roll 145°, pitch −12°) from 3 m, nearly "
-         "upside down, under the same landing controller, whose default runs the shipped motion library from 3 m "
-         "(MuJoCo): the whole-body motion that lands most often near the attitude at release. Beyond 100° the "
+         "upside down, under the same landing controller, whose default votes from 3 m between the shipped "
+         "motion library and the 3 m cap policy and takes the library here (MuJoCo): the whole-body motion that "
+         "lands most often near the attitude at release. Beyond 100° the "
          "library's "
          "motions were found by continuation from those that land at the edge (felis train landing-library "
          "--extend); from 3 m it lands about three in four of the starts tilted 120–150° (docs/landing.md)",

@@ -151,9 +151,10 @@ def register_eval(eval_sub) -> None:
                    help="a JSON list of drops {roll_deg, pitch_deg, yaw_deg, height_m}, random:N (orientations "
                    "uniform over all rotations) or euler:N (roll, pitch and yaw each uniform over the circle)")
     e.add_argument("--policy", metavar="caps+library|library|shipped|caps|passive|stand|rules|optimum|FILE",
-                   help="what the cat does while it falls and lands: caps+library (the default: the cap policy from "
-                   "the height it was built for, 1 m, the motion library from its other, 3 m; on another --design, "
-                   "library), library (the shipped motion library: the "
+                   help="what the cat does while it falls and lands: caps+library (the default: at 1 m and 3 m, "
+                   "whichever of the cap policy made for that height and the motion library landed more training "
+                   "drops started near the attitude at release; on another --design, library), library (the "
+                   "shipped motion library: the "
                    "motion that lands most often near the attitude the IMU gives at release; "
                    "on a --design with its own vote, that one: 4ms-paw's and the study's, taken on the 4 ms-paw cat), "
                    "shipped "
@@ -163,8 +164,8 @@ def register_eval(eval_sub) -> None:
                    "hand-written spine rule of the nearest training orientation), optimum (the best open-loop "
                    "whole-body motion CMA-ES finds for each drop; slow; with --warm-start, searched from the library's "
                    "motions too: the ceiling), a policy file from `felis "
-                   "train landing` (.npz), a library from `felis train landing-library` (.json) or a cap policy "
-                   "from bench/landing_caps.py (.json)")
+                   "train landing` (.npz), a library from `felis train landing-library` (.json), a cap policy "
+                   "from bench/landing_caps.py (.json) or a vote between policies from bench/landing_vote.py (.json)")
     e.add_argument("--generations", type=int, default=30, help="optimum: CMA-ES generations per start (default 30)")
     e.add_argument("--population", type=int, default=12, help="optimum: CMA-ES population (default 12)")
     e.add_argument("--restarts", type=int, default=0, help="optimum: further starts from the next seeds (default 0)")

@@ -28,13 +28,15 @@ def register(sub) -> None:
     run.add_argument("--pitch", type=finite, default=0.0, help="with --height: initial pitch (deg, default 0)")
     run.add_argument("--yaw", type=finite, default=0.0, help="with --height: initial yaw (deg, default 0)")
     run.add_argument("--policy", type=Path, metavar="caps+library|library|shipped|caps|FILE",
-                     help="landing: caps+library (the default: the cap policy from the height it was built for, 1 m, "
-                     "the motion library from its other, 3 m), library (the shipped motion library), shipped (the "
+                     help="landing: caps+library (the default: at 1 m and 3 m a vote by attitude between the cap "
+                     "policy made for that height and the motion library), library (the shipped motion library), "
+                     "shipped (the "
                      "evolved nets), "
                      "caps (the shipped cap policy: closed-loop nets imitated from the library, then evolved; or "
                      "a file from bench/landing_caps.py), "
                      "a policy file from `felis train landing` (.npz), a motion library from `felis train "
-                     "landing-library` (.json) or a whole-body motion (.json) searched for one drop "
+                     "landing-library` (.json), a vote from bench/landing_vote.py (.json) or a whole-body motion "
+                     "(.json) searched for one drop "
                      "(docs/landing.md)")
     run.add_argument("--hold", type=finite, metavar="S",
                      help="arm-track: seconds at the first point before tracking, while the servos' I terms take up "

@@ -28,7 +28,8 @@ def register(sub) -> None:
         sp.add_argument("--duration", type=finite, default=2.0, help="simulated seconds (default 2)")
         sp.add_argument("--policy", metavar="caps+library|library|shipped|caps|FILE",
                         help="the landing controller's policy, as `felis run landing --policy` (default caps+library: "
-                        "the cap policy from 1 m, the motion library from 3 m)")
+                        "at 1 m and 3 m a vote by attitude between the cap policy made for that height and the motion "
+                        "library)")
 
     drop = simsub.add_parser("drop", help="drop the robot and report how it lands")
     scenario_args(drop, need_height=True)

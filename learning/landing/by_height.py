@@ -1,7 +1,9 @@
 """Landing policies by drop height (issue 21): at release each cat takes the policy made for the height nearest the
-height it senses then, and keeps it. What the default landing policy, ``caps+library``, is: the cap policy
-(`felis.learning.landing.cap_policy`) at the height its behaviours were evolved for (1 m), the motion library's
-shelves (`felis.learning.landing.library`) at its other heights (3 m). Numpy only: an inference module.
+height it senses then, and keeps it. What the default landing policy, ``caps+library``, is: at the cap policy's
+height (1 m) and at the motion library's other shelves' (3 m) the shipped vote by attitude made for that height
+(`felis.learning.landing.by_attitude`: the cap policy or the library from 1 m, the library or the 3 m cap policy from
+3 m); without a vote for a height, the cap policy (`felis.learning.landing.cap_policy`) at its own height and the
+library's shelves (`felis.learning.landing.library`) at the others. Numpy only: an inference module.
 
 **Which height.** The height h a cat senses at release is its nets' height input (IT[6]·3 m,
 `felis.learning.landing.policy.normalise_inputs`): measured in simulation, the operator's drop height on hardware
@@ -9,10 +11,9 @@ shelves (`felis.learning.landing.library`) at its other heights (3 m). Numpy onl
 argmin_k |ln(h_k / h)|, the nearest by the ratio (fall times scale with √h), as the library picks its shelf. Between
 1 m and 3 m the boundary is √3 ≈ 1.73 m.
 
-**Why these two.** Measured on `random:100` (docs/landing.md, "The default"): from 1 m the cap policy lands 90 and 83
-of seeds 0 and 1 (85.7 on average on seeds 2–7) where the library lands 89 and 75 (70.2); from 3 m the library lands
-92 and 81 (85.2) where behaviours evolved for 3 m from the 1 m ones run shifted
-(`learning/weights/landing_caps48-3m.json`) land 69 and 73 (71.8).
+**Why.** Measured on `random:100` seeds 0–7 (docs/landing.md, "Policies by attitude"): from 1 m the cap policy lands
+85.9 on average and the library 73.1, the vote between them 92.5; from 3 m the library lands 85.5, behaviours evolved
+for 3 m from the 1 m ones run shifted (`learning/weights/landing_caps48-3m.json`) 71.6, the vote 94.25.
 """
 
 from __future__ import annotations
@@ -101,22 +102,46 @@ def caps_library_heights(caps: str | Path, library) -> tuple[float, list[float]]
     return h, rest
 
 
-def caps_library_rule(caps: str | Path, library, drop_height: float | None = None) -> ByHeightRule:
-    """``caps+library`` for one cat: `felis.learning.landing.cap_policy.CapRule` at the caps file's height, the
-    library's `felis.learning.landing.library.LibraryRule` (timed for ``drop_height``) at each other shelf's."""
+def _votes_by_height(votes) -> dict[float, Path]:
+    """{height: vote file} of the vote files among ``votes`` that exist (`felis.learning.landing.by_attitude`)."""
+    from felis.learning.landing.by_attitude import load_vote
+
+    out: dict[float, Path] = {}
+    for f in votes:
+        if Path(f).is_file():
+            out[float(load_vote(f)[0]["height_m"])] = Path(f)
+    return out
+
+
+def caps_library_rule(caps: str | Path, library, drop_height: float | None = None,
+                      votes: Sequence[str | Path] | None = None) -> ByHeightRule:
+    """``caps+library`` for one cat: at each height the vote of ``votes`` (the shipped ones by default) made for it
+    (`felis.learning.landing.by_attitude.vote_rule`: the library or a cap policy by attitude), else
+    `felis.learning.landing.cap_policy.CapRule` at the caps file's height and the library's
+    `felis.learning.landing.library.LibraryRule` (timed for ``drop_height``) at each other shelf's."""
+    from felis.learning.landing.by_attitude import SHIPPED_VOTES, vote_rule
     from felis.learning.landing.cap_policy import load_cap_rule
     from felis.learning.landing.library import LibraryRule
 
     h, rest = caps_library_heights(caps, library)
-    return ByHeightRule([h, *rest], [load_cap_rule(caps), *[LibraryRule(library, drop_height) for _ in rest]])
+    by = _votes_by_height(SHIPPED_VOTES if votes is None else votes)
+    plain = [load_cap_rule(caps), *[LibraryRule(library, drop_height) for _ in rest]]
+    return ByHeightRule([h, *rest], [vote_rule(by[x], library, drop_height) if x in by else p
+                                     for x, p in zip([h, *rest], plain, strict=True)])
 
 
-def caps_library_batch(caps: str | Path, library, heights, n_ticks: int, speed) -> ByHeight:
-    """``caps+library`` for a batch whose drops are from ``heights`` (m, one per cat): `CapPolicy` at the caps file's
-    height, one `LibraryBatch` (``n_ticks``, joint ``speed``) at the library's other shelves' heights."""
+def caps_library_batch(caps: str | Path, library, heights, n_ticks: int, speed,
+                       votes: Sequence[str | Path] | None = None) -> ByHeight:
+    """``caps+library`` for a batch whose drops are from ``heights`` (m, one per cat): at each height the vote made
+    for it (as `caps_library_rule`), else `CapPolicy` at the caps file's height and one `LibraryBatch` (``n_ticks``,
+    joint ``speed``; shared with the votes) at the library's other shelves' heights."""
+    from felis.learning.landing.by_attitude import SHIPPED_VOTES, vote_batch
     from felis.learning.landing.cap_policy import load_cap_policy
     from felis.learning.landing.library import LibraryBatch
 
     h, rest = caps_library_heights(caps, library)
+    by = _votes_by_height(SHIPPED_VOTES if votes is None else votes)
     lib = LibraryBatch(library, heights, n_ticks, speed)
-    return ByHeight([h, *rest], [load_cap_policy(caps), *[lib] * len(rest)])
+    plain = [load_cap_policy(caps), *[lib] * len(rest)]
+    return ByHeight([h, *rest], [vote_batch(by[x], library, heights, n_ticks, speed, lib) if x in by else p
+                                 for x, p in zip([h, *rest], plain, strict=True)])

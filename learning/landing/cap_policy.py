@@ -171,23 +171,28 @@ def template(hidden: int) -> SimpleBehaviour:
 
 
 def is_caps_file(path: str | Path) -> bool:
-    """Whether ``path`` is a JSON file that says it is a cap policy; an unreadable file is not (its reader then says
-    why). Every ``.json`` policy name is asked this (a 3 MB motion library takes ~80 ms to parse), so the answer is
-    kept per file and version (its size and modification time)."""
+    """Whether ``path`` is a JSON file that says it is a cap policy (`json_format`)."""
+    return json_format(path) == FORMAT
+
+
+def json_format(path: str | Path) -> str | None:
+    """The ``format`` a JSON file says it has, else None (an unreadable file has none: its reader then says why).
+    Every ``.json`` policy name is asked this (a 3 MB motion library takes ~80 ms to parse), so the answer is kept
+    per file and version (its size and modification time)."""
     try:
         st = Path(path).stat()
     except OSError:
-        return False
-    return _says_caps(str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+        return None
+    return _says(str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
 
 
 @functools.lru_cache(maxsize=64)
-def _says_caps(path: str, size: int, mtime_ns: int) -> bool:
+def _says(path: str, size: int, mtime_ns: int) -> str | None:
     try:
         doc = json.loads(Path(path).read_bytes())
     except (OSError, ValueError):
-        return False
-    return isinstance(doc, dict) and doc.get("format") == FORMAT
+        return None
+    return doc.get("format") if isinstance(doc, dict) and isinstance(doc.get("format"), str) else None
 
 
 def file_shift(d: dict) -> tuple[float, float] | None:

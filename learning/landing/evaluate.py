@@ -15,8 +15,9 @@ controller, so it lives here, not in `felis.sim`).
 Policies, by name: ``passive`` holds the pose the cat has at release (`make_controller("hold")`),
 ``stand`` moves to the stand pose (`make_controller("stand")`), ``rules`` runs the hand-written spine rule of
 the nearest training orientation, ``shipped`` the shipped trained nets, ``library`` the shipped motion library
-(`felis.learning.landing.library`), and a file path a trained policy (``.npz``) or a motion library (``.json``)
-(`check_policy`).
+(`felis.learning.landing.library`), ``caps`` the shipped cap policy, ``caps+library`` the default
+(`felis.learning.landing.by_height`), and a file path a trained policy (``.npz``), a motion library, a cap policy or
+a vote between policies by attitude (`felis.learning.landing.by_attitude`) (``.json``) (`check_policy`).
 
 `run_drops` runs a list of drops batched (`BatchLandingSim` on `felis.sim.batch.DropBatch`: every cat of a batch
 stepped together by `mujoco.batch` on every core, the policy evaluated once per tick for the batch); results
@@ -91,13 +92,24 @@ def caps_path(policy: str) -> Path | None:
     return Path(policy) if is_caps_file(policy) else None
 
 
+def vote_path(policy: str) -> Path | None:
+    """The vote between policies by attitude a policy names (a ``.json`` file that says it is one,
+    `felis.learning.landing.by_attitude`), else None."""
+    from felis.learning.landing.by_attitude import FORMAT
+    from felis.learning.landing.cap_policy import json_format
+
+    return Path(policy) if json_format(policy) == FORMAT else None
+
+
 def library_path(policy: str) -> Path | None:
-    """The motion library a policy names (``library`` or a ``.json`` file that is not a cap policy), else None."""
+    """The motion library a policy names (``library`` or a ``.json`` file that is not a cap policy nor a vote), else
+    None."""
     from felis.learning.landing.library import DEFAULT_LIBRARY
 
     if policy == "library":
         return DEFAULT_LIBRARY
-    return Path(policy) if Path(policy).suffix.lower() == ".json" and caps_path(policy) is None else None
+    return (Path(policy) if Path(policy).suffix.lower() == ".json" and caps_path(policy) is None
+            and vote_path(policy) is None else None)
 
 
 def check_policy(policy: str) -> str:
@@ -106,9 +118,21 @@ def check_policy(policy: str) -> str:
     one-line ParameterError."""
     if policy in POLICIES or policy == "rules":
         return policy
-    if policy == "caps+library":  # both parts (their heights are checked where the policy is made)
+    if policy == "caps+library":  # both parts and the shipped votes (heights are checked where the policy is made)
+        from felis.learning.landing.by_attitude import SHIPPED_VOTES, load_vote
+
         check_policy("caps")
         check_policy("library")
+        for f in SHIPPED_VOTES:
+            if f.is_file():
+                load_vote(f)  # ParameterError: one line naming the file
+        return policy
+    vote = vote_path(policy)
+    if vote is not None:  # the vote and each of its parts
+        from felis.learning.landing.by_attitude import load_vote
+
+        for part in load_vote(vote)[2]:
+            check_policy(part)
         return policy
     caps = caps_path(policy)
     if caps is not None:
@@ -159,6 +183,13 @@ def make_policy(policy: str, drop: Drop | None = None) -> Controller:
 
         h = drop.height_m if drop else None
         return LandingController(caps_library_rule(caps_path("caps"), load_library(), h), drop_height=h)
+    vote = vote_path(policy)
+    if vote is not None:
+        from felis.learning.landing.by_attitude import vote_rule
+        from felis.learning.landing.library import load_library
+
+        h = drop.height_m if drop else None
+        return LandingController(vote_rule(vote, load_library(), h), drop_height=h)
     caps = caps_path(policy)
     if caps is not None:
         from felis.learning.landing.cap_policy import load_cap_rule
@@ -359,6 +390,14 @@ def batch_controller(spec, policy: str, drops: Sequence[Drop]):
 
         return LandingBatch(spec, [caps_library_batch(caps_path("caps"), load_library(), [d.height_m for d in drops],
                                                       n_ticks, joint_speeds(spec))])
+    vote = vote_path(policy)
+    if vote is not None:
+        from felis.learning.landing.by_attitude import vote_batch
+        from felis.learning.landing.designs import joint_speeds
+        from felis.learning.landing.library import load_library
+
+        return LandingBatch(spec, [vote_batch(vote, load_library(), [d.height_m for d in drops], n_ticks,
+                                              joint_speeds(spec))])
     caps = caps_path(policy)
     if caps is not None:
         from felis.learning.landing.cap_policy import load_cap_policy

@@ -63,10 +63,12 @@ def test_bad_parts_are_one_line(heights, n, says):
             cls(heights, [_Const(0.0)] * n)
 
 
-def test_caps_library_is_the_cap_policy_at_1m_and_the_library_at_3m():
-    """The default's parts come from the files: the caps file's height (1 m) and the library's other shelves (3 m);
-    on the simulated cat the batch sends 1 m and 1.5 m drops to the cap policy and 2.5 m and 3 m drops to the library;
+def test_caps_library_is_the_votes_at_1m_and_3m():
+    """The default's heights come from the files: the caps file's height (1 m) and the library's other shelves (3 m),
+    where the shipped votes between the cap policies and the library run (`felis.learning.landing.by_attitude`);
+    on the simulated cat the batch sends 1 m and 1.5 m drops to the 1 m vote and 2.5 m and 3 m drops to the 3 m one;
     a library with no other height is one line."""
+    from felis.learning.landing.by_attitude import ByAttitude
     from felis.learning.landing.cap_policy import SHIPPED_CAPS, CapPolicy
     from felis.learning.landing.designs import design_sim
     from felis.learning.landing.evaluate import MARGIN_S, RATE_HZ, batch_controller, default_policy
@@ -84,8 +86,11 @@ def test_caps_library_is_the_cap_policy_at_1m_and_the_library_at_3m():
     finally:
         sim.close()
     pol = b.policies[0]
-    assert isinstance(pol, by_height.ByHeight) and [type(p) for p in pol.policies] == [CapPolicy, LibraryBatch]
+    assert isinstance(pol, by_height.ByHeight) and [type(p) for p in pol.policies] == [ByAttitude, ByAttitude]
+    assert [[type(x) for x in p.policies] for p in pol.policies] == [[CapPolicy, LibraryBatch],
+                                                                      [LibraryBatch, CapPolicy]]
     assert [pol.choice[i] for i in range(4)] == [0, 0, 1, 1]
+    assert sorted(pol.policies[0].choice) == [0, 1] and sorted(pol.policies[1].choice) == [2, 3]
     one = MotionLibrary([s for s in lib.shelves if s.height_m == 1.0], lib.radius_deg, lib.sigma_deg)
     with pytest.raises(ParameterError, match="no shelf at another height than the cap policy's 1 m"):
         by_height.caps_library_heights(SHIPPED_CAPS, one)

@@ -41,10 +41,11 @@ def test_batched_equals_sequential(drops, policy):
     figure exactly: the pose held, and the motion library (its table's rows on a simulation's ticks,
     `LibraryRule`). The evolved nets' batched ``einsum`` rounds in another order than one cat's matrix product
     (≤ 4e-15 on their outputs), which a drop carries to ~1e-13 of its figures; so do the cap policy's nets
-    (`CapRule` one cat, `CapPolicy` the batch), and the default, ``caps+library``, which runs them at 1 m and the
-    library from 3 m (and 2.5 m: nearer 3 m by the ratio)."""
+    (`CapRule` one cat, `CapPolicy` the batch), and the default, ``caps+library``, which votes by attitude between
+    them and the library at 1 m and 3 m (2.5 m: nearer 3 m by the ratio; the 3 m vote sends the upside-down drop to
+    the 3 m cap policy, the others to the library)."""
     if policy == "caps+library":
-        drops = drops + [Drop(40.0, 10.0, 0.0, 3.0), Drop(-100.0, 20.0, 0.0, 2.5)]
+        drops = drops + [Drop(40.0, 10.0, 0.0, 3.0), Drop(-100.0, 20.0, 0.0, 2.5), Drop(180.0, 0.0, 0.0, 3.0)]
     seq = run_drops_sequential(drops, policy, workers=1)
     bat = run_drops(drops, policy, workers=2)
     assert len(seq) == len(bat) == len(drops)
