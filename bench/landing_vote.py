@@ -8,11 +8,16 @@ voted on by the others (leave-one-seed-out); the file records that table. No eva
 
 Evaluate (``--policy FILE``): on ``--drops`` (``random:100``) for each ``--seeds`` S (0 and 1 by default) from the
 file's height: each part alone and the vote, batched (`felis.learning.landing.by_attitude.ByAttitude`), landed of
-the drops by the one verdict, by start tilt; ``--record NAME`` keeps it in the file.
+the drops by the one verdict, by start tilt; ``--record NAME`` keeps it in the file. ``--compose H`` also runs the
+paper's compose net as the dispatcher (eq. 1: a gene unit on Sy1, Sy2 with H hidden neurons, its s1 binned into the
+two parts by `dispatch_index`), fitted to the file's training drops (Adam, which part lands where only one does) and
+evolved on them from random weights (CMA-ES, 3 restarts); its choice is made at release, so each evaluation drop
+lands as its chosen part alone lands it.
 
     python bench/landing_vote.py --out FILE --height 3 --parts library landing_caps48-3m.json \\
         [--train-seeds 100 101 102 103 104 105] [--drops random:400] [--sigmas 4 6 8 10 12 15 20]
-    python bench/landing_vote.py --policy FILE [--drops random:100] [--seeds 0 1] [--record NAME] [--json]
+    python bench/landing_vote.py --policy FILE [--drops random:100] [--seeds 0 1] [--record NAME] [--json] \
+        [--compose H]
 
 Parts other than ``library`` are caps files in the folder of ``--out``. The build takes about 30 s a training seed
 and part on 2 cores from 3 m (400 drops); the evaluation about 30 s a seed.
@@ -109,26 +114,122 @@ def build(args) -> None:
           f"{doc['training']['seconds']} s")
 
 
+def compose_inputs(u: np.ndarray) -> np.ndarray:
+    """IT (N, 15) of cats released with up axes ``u``, mirrored into u_y ≥ 0: roll / π and pitch / (π/2), the rest 0
+    (a compose unit on Sy1, Sy2 reads only those)."""
+    from felis.learning.landing.by_attitude import fold
+
+    u = fold(u)
+    it = np.zeros((len(u), 15))
+    it[:, 4] = np.arctan2(u[:, 1], u[:, 2]) / np.pi
+    it[:, 5] = -np.arcsin(np.clip(u[:, 0], -1.0, 1.0)) / (np.pi / 2)
+    return it
+
+
+def compose_unit(w: np.ndarray, hidden: int):
+    """The paper's compose gene unit (`felis.learning.landing.policy.GeneUnit`, kind ``compose``) on Sy1, Sy2 with
+    ``hidden`` neurons: ``w`` its W1 (hidden × 3) then the first output's row of W2 (hidden + 1); s2 and s3, the
+    per-part signals, are 0 (the parts here are whole policies)."""
+    from felis.learning.landing.policy import GeneUnit
+
+    w1 = w[:hidden * 3].reshape(hidden, 3)
+    w2 = np.zeros((3, hidden + 1))
+    w2[0] = w[hidden * 3:]
+    return GeneUnit("compose", (4, 5), hidden, w1, w2, 1.0).check()
+
+
+def compose_choice(unit, u: np.ndarray) -> np.ndarray:
+    """The part (0 or 1) the compose unit dispatches each up axis to: `dispatch_index` of its s1 over 2 parts."""
+    from felis.learning.landing.policy import dispatch_index
+
+    return dispatch_index(unit.raw_many(compose_inputs(u))[:, 0], 2)
+
+
+def fit_compose(up: np.ndarray, landed: np.ndarray, hidden: int, steps: int = 4000, seed: int = 0):
+    """A compose unit fitted (Adam, logistic loss) to say, for each training drop only one part lands, which one."""
+    import torch
+
+    torch.manual_seed(seed)
+    x = torch.tensor(compose_inputs(up)[:, 4:6])
+    y = torch.tensor((landed[:, 1] > landed[:, 0]).astype(float))
+    m = torch.tensor((landed[:, 1] != landed[:, 0]).astype(float))
+    net = torch.nn.Sequential(torch.nn.Linear(2, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, 1)).double()
+    opt = torch.optim.Adam(net.parameters(), lr=1e-2)
+    for _ in range(steps):  # s1 = tanh(z): the logit 5 z keeps s1 off its flat ends
+        z = 5.0 * torch.tanh(net(x)[:, 0])
+        loss = (m * torch.nn.functional.binary_cross_entropy_with_logits(z, y, reduction="none")).sum() / m.sum()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    a, b = net[0], net[2]
+    w = np.concatenate([np.hstack([a.weight.detach().numpy(), a.bias.detach().numpy()[:, None]]).ravel(),
+                        b.weight.detach().numpy().ravel(), b.bias.detach().numpy()])
+    return compose_unit(w, hidden)
+
+
+def evolve_compose(up: np.ndarray, landed: np.ndarray, hidden: int, generations: int = 150, popsize: int = 24,
+                   restarts: int = 3, seed: int = 0):
+    """A compose unit evolved from random weights by CMA-ES (`cma`, restarts), maximising the training drops landed
+    with the dispatch softened (a logistic of 20 s1), the best of the restarts by drops landed."""
+    import cma
+
+    it = compose_inputs(up)
+    n = hidden * 3 + hidden + 1
+    rng = np.random.default_rng(seed)
+    best = None
+    for r in range(restarts):
+        def f(w):
+            s = compose_unit(np.asarray(w), hidden).raw_many(it)[:, 0]
+            q = 1.0 / (1.0 + np.exp(-20.0 * s))
+            return -float(((1 - q) * landed[:, 0] + q * landed[:, 1]).sum())
+        es = cma.CMAEvolutionStrategy(rng.normal(0.0, 0.5, n), 0.3,
+                                      {"popsize": popsize, "seed": seed + 1 + r, "verbose": -9})
+        for _ in range(generations):
+            ws = es.ask()
+            es.tell(ws, [f(w) for w in ws])
+        unit = compose_unit(np.asarray(es.result.xbest), hidden)
+        got = int(landed[np.arange(len(up)), compose_choice(unit, up)].sum())
+        if best is None or got > best[0]:
+            best = (got, unit)
+    return best[1]
+
+
 def evaluate_vote(args) -> dict:
     from felis.learning.landing.evaluate import by_tilt
 
     d, v, _ = load_vote(args.policy)
     h = float(d["height_m"])
+    units = {}
+    if args.compose:  # the paper's compose net on the vote's training drops, fitted and evolved (2 parts)
+        if v.parts != 2:
+            raise ParameterError(f"landing vote: --compose dispatches between 2 parts; {args.policy} has {v.parts}")
+        units = {"compose_fitted": fit_compose(v.probes, v.landed, args.compose),
+                 "compose_evolved": evolve_compose(v.probes, v.landed, args.compose)}
     lib = load_library()
     sim = design_sim("cat")
     res = {"policy": str(args.policy), "height_m": h, "drops": args.drops, "parts": d["parts"], "seeds": {}}
+    if units:
+        res["compose"] = {"hidden": args.compose, "training_landed": {
+            k: int(v.landed[np.arange(len(v.probes)), compose_choice(x, v.probes)].sum()) for k, x in units.items()}}
     try:
         for s in args.seeds:
             drops = drops_from(args.drops, s, h)
             row = {}
+            parts_landed = []
             for name in d["parts"]:
                 got = _run(sim, drops, _part(name, Path(args.policy).parent, lib, sim, drops))
+                parts_landed.append(got)
                 row[name] = {"landed": sum(got), "by_tilt": by_tilt(drops, got)}
             pol = vote_batch(args.policy, lib, [x.height_m for x in drops], _n_ticks(drops), joint_speeds(sim.spec))
             got = _run(sim, drops, pol)
             chose = np.bincount(v.choose(np.array([drop_up(x) for x in drops])), minlength=v.parts)
             row["vote"] = {"landed": sum(got), "by_tilt": by_tilt(drops, got),
                            "chose": {n: int(c) for n, c in zip(d["parts"], chose, strict=True)}}
+            ups = np.array([drop_up(x) for x in drops])
+            for name, unit in units.items():  # its choice is made at release: each drop lands as its part alone
+                k = compose_choice(unit, ups)
+                row[name] = {"landed": int(sum(parts_landed[j][i] for i, j in enumerate(k))),
+                             "chose": {n: int(c) for n, c in zip(d["parts"], np.bincount(k, minlength=2), strict=True)}}
             res["seeds"][str(s)] = row
     finally:
         sim.close()
@@ -159,6 +260,10 @@ def main(argv=None) -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--record", metavar="NAME", help="with --policy FILE: keep the evaluation in FILE")
+    ap.add_argument("--compose", type=int, default=0, metavar="H",
+                    help="with --policy FILE: also the paper's compose net (a gene unit on Sy1, Sy2 with H hidden "
+                    "neurons) as the dispatcher, fitted to the file's training drops and evolved on them from random "
+                    "weights; each lands its choices as the parts alone land them")
     args = ap.parse_args(argv)
     args.argv = sys.argv[1:] if argv is None else list(argv)
     if (args.out is None) == (args.policy is None):
@@ -167,11 +272,17 @@ def main(argv=None) -> None:
         ap.error("--height must be in (0, 20] m and each of --sigmas in (0, 90]°")
     if args.record is not None and args.policy is None:
         ap.error("--record keeps an evaluation: give --policy FILE")
+    if args.compose < 0 or (args.compose and args.policy is None):
+        ap.error("--compose H (≥ 1) evaluates a compose net with --policy FILE")
     if args.out and len(args.train_seeds) < 2:
         ap.error("--train-seeds: σ is chosen leaving one seed out, so give at least two")
     args.drops = args.drops or ("random:400" if args.out else "random:100")
     if not args.drops.startswith("random:"):
         ap.error("--drops: random:N")
+    if args.compose:
+        import torch
+
+        torch.set_num_threads(1)  # a small net: threads cost more than they give
     try:
         if args.out:
             build(args)
@@ -188,6 +299,9 @@ def main(argv=None) -> None:
     for s, row in res["seeds"].items():
         print(f"  seed {s}: " + ", ".join(f"{n} {r['landed']}" for n, r in row.items())
               + f" (the vote chose {row['vote']['chose']})")
+    if "compose" in res:
+        print(f"  compose nets ({res['compose']['hidden']} hidden) on the training drops: "
+              f"{res['compose']['training_landed']}")
 
 
 if __name__ == "__main__":
