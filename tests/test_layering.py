@@ -46,7 +46,7 @@ SUBPACKAGES = ("felis.cli", "felis.scenarios", "felis.logs", "felis.drivers", "f
 # passes and weight readers that the solver and the estimator share with training)
 INFERENCE = ("felis.learning.landing.policy", "felis.learning.landing.motion", "felis.learning.landing.library",
              "felis.learning.landing.cap_policy", "felis.learning.landing.by_height",
-             "felis.learning.landing.by_attitude",
+             "felis.learning.landing.by_attitude", "felis.learning.landing.parts",
              "felis.learning.ik.solver",
              "felis.learning.ik.infer", "felis.learning.phase.estimator", "felis.learning.phase.infer",
              "felis.learning.balance.selector")

@@ -36,7 +36,7 @@ import numpy as np
 
 from felis.errors import ParameterError
 from felis.learning.landing.library import up_axis
-from felis.learning.landing.motion import DT  # the control tick (s)
+from felis.learning.landing.parts import Latched, LatchedRule
 
 FORMAT = "felis-landing-vote"
 _WEIGHTS = Path(__file__).parents[1] / "weights"
@@ -92,49 +92,36 @@ class Vote:
         return self.choose(up_axis(it[:, 4] * math.pi, it[:, 5] * (math.pi / 2)))
 
 
-class ByAttitude:
+class ByAttitude(Latched):
     """Batch policies by attitude (module doc): cat b takes, at its first tick, ``policies[k]`` that ``vote`` picks
-    for its up axis, and keeps it. Each part is a `felis.controllers.landing.LandingBatch` policy (a behaviour's
-    ``velocities_many``, or ``(IT, t, rows)``) and sees the batch's rows; one instance per batch run."""
+    for its up axis, and keeps it (`felis.learning.landing.parts.Latched`). Each part is a
+    `felis.controllers.landing.LandingBatch` policy (a behaviour's ``velocities_many``, or ``(IT, t, rows)``) and sees
+    the batch's rows; one instance per batch run."""
 
     def __init__(self, v: Vote, policies):
-        self.vote, self.policies = v, list(policies)
+        self.vote = v
+        super().__init__(policies)
         if len(self.policies) != v.parts:
             raise ParameterError(f"landing vote: {v.parts} parts voted on, {len(self.policies)} policies given")
-        self.choice: dict[int, int] = {}  # row → part
 
-    def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        new = [i for i, r in enumerate(rows) if t[i] < DT / 2 or int(r) not in self.choice]
-        if new:
-            for i, k in zip(new, self.vote.choose_it(it[new]), strict=True):
-                self.choice[int(rows[i])] = int(k)
-        pick = np.array([self.choice[int(r)] for r in rows], dtype=int)
-        v = np.zeros((len(it), 12))
-        for k in np.unique(pick):
-            g = np.flatnonzero(pick == k)
-            p = self.policies[k]
-            f = getattr(p, "velocities_many", None)
-            v[g] = f(it[g]) if callable(f) else p(it[g], t[g], rows[g])
-        return v
+    def choose(self, it: np.ndarray) -> np.ndarray:
+        return self.vote.choose_it(it)
 
 
-class ByAttitudeRule:
+class ByAttitudeRule(LatchedRule):
     """`ByAttitude` for one cat, a `felis.controllers.landing.LandingController` policy ``(it (15,), t) -> (12,)``:
     at its first call it takes the rule (``(it, t)`` callables) the vote picks for its attitude and keeps it."""
 
     kind = "by-attitude"
 
     def __init__(self, v: Vote, rules):
-        self.vote, self.rules = v, list(rules)
+        self.vote = v
+        super().__init__(rules)
         if len(self.rules) != v.parts:
             raise ParameterError(f"landing vote: {v.parts} parts voted on, {len(self.rules)} rules given")
-        self.part: int | None = None
 
-    def __call__(self, it: np.ndarray, t: float) -> np.ndarray:
-        it = np.asarray(it, dtype=float)
-        if self.part is None or float(t) < DT / 2:
-            self.part = int(self.vote.choose_it(it)[0])
-        return self.rules[self.part](it, t)
+    def choose(self, it: np.ndarray) -> np.ndarray:
+        return self.vote.choose_it(it)
 
 
 def is_vote_file(path: str | Path) -> bool:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from felis.errors import ParameterError
-from felis.learning.landing.motion import DT  # the control tick (s)
+from felis.learning.landing.parts import Latched, LatchedRule
 from felis.learning.landing.policy import DROP_HEIGHT_M
 
 NAME = "caps+library"  # ``--policy caps+library``: the default where both parts are shipped
@@ -46,32 +46,21 @@ def _check(heights, parts) -> np.ndarray:
     return heights
 
 
-class ByHeight:
+class ByHeight(Latched):
     """Batch policies by height (module doc): cat b takes, at its first tick, ``policies[k]`` with ``heights[k]`` the
-    nearest the height it senses, and keeps it. Each part is a `felis.controllers.landing.LandingBatch` policy (a
-    behaviour's ``velocities_many``, or ``(IT, t, rows)``) and sees the batch's rows; one instance per batch run."""
+    nearest the height it senses, and keeps it (`felis.learning.landing.parts.Latched`). Each part is a
+    `felis.controllers.landing.LandingBatch` policy (a behaviour's ``velocities_many``, or ``(IT, t, rows)``) and sees
+    the batch's rows; one instance per batch run."""
 
     def __init__(self, heights: Sequence[float], policies: Sequence):
         self.heights = _check(heights, policies)
-        self.policies = list(policies)
-        self.choice: dict[int, int] = {}  # row → part
+        super().__init__(policies)
 
-    def __call__(self, it: np.ndarray, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        new = [i for i, r in enumerate(rows) if t[i] < DT / 2 or int(r) not in self.choice]
-        if new:
-            for i, k in zip(new, nearest_height(self.heights, it[new, 6] * DROP_HEIGHT_M), strict=True):
-                self.choice[int(rows[i])] = int(k)
-        pick = np.array([self.choice[int(r)] for r in rows], dtype=int)
-        v = np.zeros((len(it), 12))
-        for k in np.unique(pick):
-            g = np.flatnonzero(pick == k)
-            p = self.policies[k]
-            f = getattr(p, "velocities_many", None)
-            v[g] = f(it[g]) if callable(f) else p(it[g], t[g], rows[g])
-        return v
+    def choose(self, it: np.ndarray) -> np.ndarray:
+        return nearest_height(self.heights, it[:, 6] * DROP_HEIGHT_M)
 
 
-class ByHeightRule:
+class ByHeightRule(LatchedRule):
     """`ByHeight` for one cat, a `felis.controllers.landing.LandingController` policy ``(it (15,), t) -> (12,)``:
     at its first call it takes the rule (``(it, t)`` callables) of the height nearest the one it senses and keeps
     it."""
@@ -80,14 +69,10 @@ class ByHeightRule:
 
     def __init__(self, heights: Sequence[float], rules: Sequence):
         self.heights = _check(heights, rules)
-        self.rules = list(rules)
-        self.part: int | None = None
+        super().__init__(rules)
 
-    def __call__(self, it: np.ndarray, t: float) -> np.ndarray:
-        it = np.asarray(it, dtype=float)
-        if self.part is None or float(t) < DT / 2:
-            self.part = int(nearest_height(self.heights, it[6] * DROP_HEIGHT_M)[0])
-        return self.rules[self.part](it, t)
+    def choose(self, it: np.ndarray) -> np.ndarray:
+        return nearest_height(self.heights, it[:, 6] * DROP_HEIGHT_M)
 
 
 def caps_library_heights(caps: str | Path, library) -> tuple[float, list[float]]:
