@@ -124,3 +124,9 @@ def test_the_docs_tables_are_the_votes_recorded_evaluations():
     for name, label in (("compose_fitted", "compose net, fitted"),
                         ("compose_evolved", "compose net, evolved from random weights")):
         assert f"| {label} | {cols[name][0]} | {cols[name][1]} |" in doc, (label, cols[name])
+    # the README's Unreleased entry quotes the same means
+    readme = " ".join((BENCH.parents[1] / "README.md").read_text().split())
+    mean = {k: [v.rsplit("(", 1)[1].rstrip(")") for v in vs] for k, vs in cols.items()}
+    assert (f"fitted to the same drops it lands {mean['compose_fitted'][0]} and {mean['compose_fitted'][1]}, evolved "
+            f"from random weights {mean['compose_evolved'][0]} and {mean['compose_evolved'][1]}") in readme
+    assert f"({mean['vote'][0]} and {mean['vote'][1]} on average over seeds 0–7" in readme
