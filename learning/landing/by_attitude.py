@@ -28,6 +28,7 @@ folder), ``sigma_deg``, ``probes`` (``up``: N unit vectors, ``landed``: N rows o
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -134,7 +135,18 @@ def is_vote_file(path: str | Path) -> bool:
 def load_vote(path: str | Path) -> tuple[dict, Vote, list[str]]:
     """(the file's dict, its `Vote`, its parts as policy names: ``library`` or a caps file's path) of a vote file
     (module doc); `ParameterError`, one line naming the file, for anything else (not JSON, another format, a part
-    that is not ``library`` or a file beside it, probes or landings of the wrong shape, a σ out of range)."""
+    that is not ``library`` or a file beside it, probes or landings of the wrong shape, a σ out of range). Read once
+    per file version (its size and modification time): the default reads its votes for every cat it makes."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError as e:
+        raise ParameterError(f"landing vote: {p}: {e.strerror or e}") from None
+    return _load_vote(str(p), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _load_vote(path: str, size: int, mtime_ns: int) -> tuple[dict, Vote, list[str]]:
     p = Path(path)
     try:
         d = json.loads(p.read_text())
